@@ -1,0 +1,1 @@
+"""ONNX export of the occflownet inference graph (torch → ONNX, parity-checked against onnxruntime)."""

@@ -1,0 +1,5 @@
+import sys
+
+from occflownet.cli import main
+
+sys.exit(main())

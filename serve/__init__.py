@@ -1,0 +1,1 @@
+"""HTTP serving of an exported occflownet ONNX model (FastAPI + onnxruntime; never imports torch)."""

@@ -1,0 +1,56 @@
+import numpy as np
+
+from occflownet import config, geometry
+from occflownet.config import GRID
+
+
+def test_grid_matches_occ3d():
+    assert GRID.shape == (200, 200, 16)
+    for axis in range(3):
+        extent = GRID.upper[axis] - GRID.lower[axis]
+        assert np.isclose(extent / GRID.voxel_size, GRID.shape[axis])
+    assert np.allclose(GRID.centers(0)[[0, -1]], [-39.8, 39.8])
+    assert np.allclose(GRID.centers(2)[[0, -1]], [-0.8, 5.2])
+
+
+def test_index_of_voxel_centres_round_trip():
+    ijk = np.stack(np.meshgrid(*[np.arange(0, s, 7) for s in GRID.shape], indexing="ij"), -1).reshape(-1, 3)
+    centres = np.asarray(GRID.lower) + (ijk + 0.5) * GRID.voxel_size
+    assert np.array_equal(GRID.index_of(centres), ijk)
+    assert GRID.contains(centres).all()
+    assert not GRID.contains(np.array([[40.0, 0, 0], [0, 0, -1.01], [0, 0, 5.4]])).any()
+
+
+def test_class_table():
+    assert len(config.CLASS_NAMES) == 18 and config.CLASS_NAMES[config.FREE] == "free"
+    assert config.CLASS_COLORS.shape == (18, 3)
+    assert set(config.DYNAMIC_CLASSES).isdisjoint(config.STATIC_CLASSES)
+    assert len(config.DYNAMIC_CLASSES) + len(config.STATIC_CLASSES) == config.NUM_CLASSES
+
+
+def test_lidarseg_mapping_known_answers():
+    raw = np.array([9, 14, 15, 16, 17, 18, 21, 2, 3, 4, 6, 12, 22, 23, 24, 25, 26, 27, 28, 30, 0, 1, 5, 31])
+    want = np.array([1, 2, 3, 3, 4, 5, 6, 7, 7, 7, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 0, 0, 0, 0])
+    assert np.array_equal(config.map_lidarseg(raw), want)
+    assert config.category_to_occ3d("vehicle.car") == 4
+    assert config.category_to_occ3d("human.pedestrian.adult") == 7
+    assert config.category_to_occ3d("not.a.category") == 0
+
+
+def test_quaternion_round_trip_and_inverse():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        q *= np.sign(q[0])
+        assert np.allclose(geometry.matrix_to_quaternion(geometry.quaternion_to_matrix(q)), q)
+        T = geometry.make_transform(q, rng.normal(size=3))
+        assert np.allclose(geometry.invert(T) @ T, np.eye(4))
+        p = rng.normal(size=(5, 3))
+        assert np.allclose(geometry.transform_points(geometry.invert(T), geometry.transform_points(T, p)), p)
+
+
+def test_yaw_quaternion_rotates_x_to_y():
+    R = geometry.quaternion_to_matrix(geometry.yaw_to_quaternion(np.pi / 2))
+    assert np.allclose(R @ [1, 0, 0], [0, 1, 0])
+    assert np.allclose(geometry.rotation_z(np.pi / 2)[:3, :3], R)
