@@ -54,3 +54,30 @@ def test_yaw_quaternion_rotates_x_to_y():
     R = geometry.quaternion_to_matrix(geometry.yaw_to_quaternion(np.pi / 2))
     assert np.allclose(R @ [1, 0, 0], [0, 1, 0])
     assert np.allclose(geometry.rotation_z(np.pi / 2)[:3, :3], R)
+
+
+def test_default_rig_projects_forward_point_to_front_camera_centre():
+    from occflownet.rig import calibration_arrays, default_rig
+
+    K, T = calibration_arrays(default_rig(800, 450))
+    p_ego = np.array([20.0, 0.0, 1.51, 1.0])
+    p_cam = np.linalg.inv(T[0]) @ p_ego
+    uv = K[0] @ p_cam[:3]
+    assert np.allclose(uv[:2] / uv[2], [400, 225], atol=0.5)
+    # CAM_BACK looks backwards: a point behind the car has positive depth there.
+    assert (np.linalg.inv(T[3]) @ np.array([-20.0, 0, 1.5, 1]))[2] > 0
+
+
+def test_calibration_errors_are_clear():
+    import pytest
+
+    from occflownet.rig import calibration_arrays, default_rig
+
+    calib = default_rig()
+    del calib["cameras"]["CAM_BACK"]
+    with pytest.raises(KeyError, match="CAM_BACK"):
+        calibration_arrays(calib)
+    calib = default_rig()
+    calib["cameras"]["CAM_FRONT"]["intrinsic"] = [[0, 0, 0], [0, 0, 0], [0, 0, 1]]
+    with pytest.raises(ValueError, match="singular"):
+        calibration_arrays(calib)

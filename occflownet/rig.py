@@ -1,0 +1,78 @@
+"""The default six-camera rig: nuScenes-like placement and fields of view (rounded, idealised: level cameras).
+
+The synthetic world uses it; a model records the rig it was trained on as the default calibration of its ONNX
+file. Frames: ``cam2ego`` maps the OpenCV camera frame (x right, y down, z forward) into the ego frame
+(x forward, y left, z up). Intrinsics are for an image of ``width × height`` pixels (nuScenes: 1600 × 900).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from occflownet.config import CAMERAS
+
+# name: (position in the ego frame [m], yaw of the optical axis about +z [deg], focal length at 1600 px width)
+_RIG_1600 = {
+    "CAM_FRONT": ((1.70, 0.00, 1.51), 0.0, 1266.0),
+    "CAM_FRONT_RIGHT": ((1.55, -0.49, 1.50), -55.0, 1260.0),
+    "CAM_FRONT_LEFT": ((1.52, 0.49, 1.51), 55.0, 1260.0),
+    "CAM_BACK": ((0.03, 0.00, 1.58), 180.0, 809.0),
+    "CAM_BACK_LEFT": ((1.04, 0.48, 1.56), 110.0, 1260.0),
+    "CAM_BACK_RIGHT": ((1.02, -0.48, 1.56), -110.0, 1260.0),
+}
+NUSCENES_SIZE = (1600, 900)
+
+# Camera axes expressed in the ego frame for a camera looking along +x: columns are cam x, y, z.
+_CAM_TO_EGO_AXES = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def cam2ego(position, yaw_deg: float) -> np.ndarray:
+    """4×4 camera→ego transform of a level camera at ``position`` looking along yaw ``yaw_deg``."""
+    a = np.radians(yaw_deg)
+    rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    T = np.eye(4)
+    T[:3, :3] = rz @ _CAM_TO_EGO_AXES
+    T[:3, 3] = position
+    return T
+
+
+def intrinsic(focal_1600: float, width: int, height: int) -> np.ndarray:
+    """3×3 pinhole intrinsics scaled from the 1600-px nuScenes focal length to ``width × height``."""
+    s = width / NUSCENES_SIZE[0]
+    return np.array([[focal_1600 * s, 0.0, width / 2.0], [0.0, focal_1600 * s, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+def default_rig(width: int = 1600, height: int = 900) -> dict:
+    """The default rig as calibration JSON (design notes section 3), plus its ``image_size`` [width, height]."""
+    cams = {}
+    for name in CAMERAS:
+        pos, yaw, f = _RIG_1600[name]
+        cams[name] = {"intrinsic": intrinsic(f, width, height).tolist(), "cam2ego": cam2ego(pos, yaw).tolist()}
+    return {"cameras": cams, "image_size": [width, height]}
+
+
+def calibration_arrays(calib: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Calibration JSON → (intrinsics float32 [6, 3, 3], cam2ego float32 [6, 4, 4]) in camera order.
+
+    Raises ``KeyError`` naming the missing camera or field, ``ValueError`` for wrong shapes or non-finite values.
+    """
+    cams = calib.get("cameras")
+    if not isinstance(cams, dict):
+        raise KeyError("calibration has no 'cameras' object")
+    K, T = [], []
+    for name in CAMERAS:
+        if name not in cams:
+            raise KeyError(f"calibration lacks camera {name}")
+        for field in ("intrinsic", "cam2ego"):
+            if field not in cams[name]:
+                raise KeyError(f"calibration of {name} lacks '{field}'")
+        k = np.asarray(cams[name]["intrinsic"], dtype=np.float64)
+        t = np.asarray(cams[name]["cam2ego"], dtype=np.float64)
+        if k.shape != (3, 3) or t.shape != (4, 4):
+            raise ValueError(f"{name}: intrinsic must be 3x3 and cam2ego 4x4, got {k.shape} and {t.shape}")
+        if not (np.isfinite(k).all() and np.isfinite(t).all()):
+            raise ValueError(f"{name}: calibration contains NaN or inf")
+        if abs(np.linalg.det(k)) < 1e-9:
+            raise ValueError(f"{name}: intrinsic matrix is singular")
+        K.append(k)
+        T.append(t)
+    return np.stack(K).astype(np.float32), np.stack(T).astype(np.float32)
