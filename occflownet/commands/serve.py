@@ -1,12 +1,84 @@
-"""`occflownet serve`: serve an ONNX model over HTTP."""
-from ._pending import not_yet
+"""`occflownet serve`: serve an exported ONNX model over HTTP (FastAPI + uvicorn + onnxruntime, no torch).
+
+Options left unset fall back to the ``OCCFLOWNET_*`` environment variables (see serve/settings.py), then to the
+defaults. The model is checked before uvicorn starts, so a missing or invalid file ends the command with a message
+naming it (exit status 2). The API key is read from ``OCCFLOWNET_API_KEY`` only (never a command-line argument,
+which other users could read from the process list).
+"""
+import os
+import sys
 
 HELP = "serve an ONNX model over HTTP"
 
 
 def add_arguments(parser):
-    pass
+    parser.add_argument("--model", help="contract-v1 ONNX file (default: $OCCFLOWNET_MODEL)")
+    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="uvicorn worker processes, each with its own model session (default 1)")
+    parser.add_argument("--threads", type=int, default=None, dest="intra_op_threads",
+                        help="onnxruntime intra-op threads per inference (default: cores // workers)")
+    parser.add_argument("--max-inflight", type=int, default=None,
+                        help="concurrent inferences per worker (default: max(1, cores // workers // threads))")
+    parser.add_argument("--max-queue", type=int, default=None,
+                        help="requests admitted beyond those running; more get 503 + Retry-After (default 4)")
+    parser.add_argument("--max-body-mb", type=float, default=None, help="request body limit in MiB (default 64)")
+    parser.add_argument("--max-image-pixels", type=int, default=None,
+                        help="pixels per image, checked from the header before decoding (default 4096*4096)")
+    parser.add_argument("--no-warmup", action="store_true", help="ready at once, without a warm-up inference")
+    parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    parser.add_argument("--no-access-log", action="store_true", help="do not log one line per request")
+
+
+def _settings(args):
+    from serve.settings import ServeSettings
+
+    settings = ServeSettings.from_env()
+    if args.model:
+        settings.model_path = args.model
+    for name in ("workers", "intra_op_threads", "max_inflight", "max_queue", "max_image_pixels"):
+        if getattr(args, name) is not None:
+            setattr(settings, name, getattr(args, name))
+    if args.max_body_mb is not None:
+        settings.max_body_bytes = int(args.max_body_mb * 1024 * 1024)
+    if args.no_warmup:
+        settings.warmup = False
+    return settings
 
 
 def run(args) -> int:
-    return not_yet("serve", 7)
+    try:
+        settings = _settings(args)
+        resolved = settings.resolved()
+    except ValueError as exc:
+        print(f"occflownet serve: {exc}", file=sys.stderr)
+        return 2
+    if not settings.model_path:
+        print("occflownet serve: no model given: pass --model FILE or set OCCFLOWNET_MODEL", file=sys.stderr)
+        return 2
+
+    import uvicorn
+
+    from serve.app import create_app
+    from serve.model_runtime import ModelLoadError, ModelRuntime
+
+    try:
+        runtime = ModelRuntime.load(settings.model_path, resolved)
+    except ModelLoadError as exc:
+        print(f"occflownet serve: {exc}", file=sys.stderr)
+        return 2
+    md = runtime.metadata
+    print(f"occflownet serve: model {runtime.path} (preset {md.preset}, contract {md.onnx_contract}) on "
+          f"http://{args.host}:{args.port} with {resolved.workers} worker(s)", file=sys.stderr)
+    common = dict(host=args.host, port=args.port, log_level=args.log_level, access_log=not args.no_access_log)
+    try:
+        if resolved.workers == 1:
+            uvicorn.run(create_app(settings, runtime=runtime), **common)
+        else:
+            del runtime  # each worker process loads its own session from the environment
+            os.environ.update(settings.to_env())
+            uvicorn.run("serve.app:create_app_from_env", factory=True, workers=resolved.workers, **common)
+    except SystemExit as exc:  # uvicorn exits 3 when start-up fails (e.g. the port is taken)
+        return int(exc.code or 0)
+    return 0

@@ -1,0 +1,226 @@
+"""Rendering supervision: camera rays through labelled LiDAR points (design notes section 5).
+
+For every keyframe each LiDAR point is projected into each of the six cameras; every hit (camera z-depth
+≥ ``min_depth``, projection inside the image: 0 ≤ u < W, 0 ≤ v < H) whose point lies inside the occupancy grid of
+the *current* ego frame becomes one ray:
+
+- origin    = the camera centre;
+- direction = unit vector through the centre of the pixel the point falls in, (floor(u) + 0.5, floor(v) + 0.5);
+- depth     = Euclidean distance from the camera centre to the LiDAR point (not the camera z-depth);
+- label     = Occ3D class of the point (``config.map_lidarseg`` of its raw lidarseg index).
+
+Because the direction goes through the pixel centre while the depth is the distance to the point itself,
+``origin + depth * direction`` misses the point by at most ``depth * θ``, θ being the angle between the ray to the
+point and the ray to its pixel centre (≤ ~0.71 px / focal length; see ``pixel_rounding_bound``).
+
+Temporal frames t ∈ [-O, O] of the same scene are moved exactly into the current ego frame (the ego frame at the
+current keyframe's LiDAR timestamp, the frame of the Occ3D ground truth):
+- points:  current_ego ← global ← ego(t, LiDAR time) ← lidar(t)
+- cameras: current_ego ← global ← ego(t, that camera's time) ← camera(t); projection into image t uses the same
+  camera pose, so a point is tested against the image it was really seen in.
+Per-frame hits are computed in the global frame once and cached; moving them into any current frame is a rigid
+transform, which leaves depths unchanged.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from occflownet.config import DYNAMIC_FILTER_CLASSES, GRID, map_lidarseg
+from occflownet.data.loaders import load_lidar, load_lidarseg
+from occflownet.data.tables import DatasetError
+from occflownet.geometry import invert, transform_points
+
+EGO_VEHICLE_RAW_LABEL = 31  # nuScenes-lidarseg 'vehicle.ego': returns from the recording car itself
+
+
+@dataclass(frozen=True)
+class RayConfig:
+    """How rays are made. The defaults are the paper's / official code's."""
+
+    horizon: int = 3                        # O: temporal frames t ∈ [-O, O] within the scene
+    dynamic_filter: bool = True             # drop rays labelled in DYNAMIC_FILTER_CLASSES in frames t ≠ 0
+    min_depth: float = 0.05                 # minimum camera z-depth of a hit, metres
+    ignored_raw_labels: tuple[int, ...] = (EGO_VEHICLE_RAW_LABEL,)  # lidarseg raw classes that make no ray
+
+    def __post_init__(self):
+        if self.horizon < 0:
+            raise ValueError(f"horizon must be >= 0, got {self.horizon}")
+        if self.min_depth <= 0:
+            raise ValueError(f"min_depth must be > 0, got {self.min_depth}")
+
+
+@dataclass(frozen=True)
+class RayBatch:
+    """R rays, all in the current ego frame of one keyframe."""
+
+    origins: np.ndarray       # float32 [R, 3]  camera centre, current ego frame (m)
+    directions: np.ndarray    # float32 [R, 3]  unit, through the pixel centre, current ego frame
+    depths: np.ndarray        # float32 [R]     distance from the origin to the LiDAR point along the ray (m)
+    labels: np.ndarray        # uint8   [R]     Occ3D class 0..16
+    time_offsets: np.ndarray  # int8    [R]     t: keyframe offset of the frame the ray comes from (0 = current)
+    cameras: np.ndarray       # int8    [R]     camera index in config.CAMERAS order
+    pixels: np.ndarray        # float32 [R, 2]  (u, v) pixel centre in that camera's stored image, pixels
+
+    def __len__(self) -> int:
+        return len(self.depths)
+
+    def take(self, index) -> "RayBatch":
+        """The rays selected by an integer index array or boolean mask."""
+        return RayBatch(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+    def endpoints(self) -> np.ndarray:
+        """float32 [R, 3]: origin + depth · direction (≈ the LiDAR point, current ego frame)."""
+        return self.origins + self.depths[:, None] * self.directions
+
+    @staticmethod
+    def concatenate(batches: list["RayBatch"]) -> "RayBatch":
+        return RayBatch(**{f.name: np.concatenate([getattr(b, f.name) for b in batches]) for f in fields(RayBatch)})
+
+
+@dataclass(frozen=True)
+class CameraHits:
+    """Projections of points into cameras: one entry per (point, camera) hit. H hits."""
+
+    point_index: np.ndarray   # int64 [H] index into the projected points
+    camera: np.ndarray        # int64 [H] camera index
+    uv: np.ndarray            # float64 [H, 2] continuous pixel coordinates of the projection
+
+
+def project_points(points: np.ndarray, world_to_cams: np.ndarray, intrinsics: np.ndarray,
+                   image_sizes: np.ndarray, min_depth: float = 0.05) -> CameraHits:
+    """Project points [N, 3] (any frame W) into C cameras.
+
+    world_to_cams: float [C, 4, 4] mapping W into each OpenCV camera frame; intrinsics [C, 3, 3];
+    image_sizes [C, 2] (width, height). A hit needs z ≥ min_depth and 0 ≤ u < width, 0 ≤ v < height."""
+    points = np.asarray(points, dtype=np.float64)
+    idx, cams, uvs = [], [], []
+    for c in range(len(world_to_cams)):
+        pc = transform_points(world_to_cams[c], points)
+        front = np.flatnonzero(pc[:, 2] >= min_depth)
+        proj = pc[front] @ np.asarray(intrinsics[c], dtype=np.float64).T
+        uv = proj[:, :2] / proj[:, 2:3]
+        w, h = image_sizes[c]
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        idx.append(front[inside])
+        cams.append(np.full(int(inside.sum()), c, dtype=np.int64))
+        uvs.append(uv[inside])
+    return CameraHits(np.concatenate(idx), np.concatenate(cams), np.concatenate(uvs).reshape(-1, 2))
+
+
+def pixel_centers(uv: np.ndarray) -> np.ndarray:
+    """Continuous pixel coordinates [H, 2] → centre of the pixel they fall in: floor(uv) + 0.5."""
+    return np.floor(uv) + 0.5
+
+
+def pixel_rounding_bound(intrinsics: np.ndarray) -> float:
+    """Upper bound on the angle (radians) between the ray to a point and the ray through its pixel centre.
+
+    On the normalised image plane (z = 1) the two rays pierce points a, b with |a|, |b| ≥ 1 and
+    |a - b| ≤ √2/2 px / f (f the smallest focal length, no skew), so sin θ ≤ |a - b|. The endpoint error of a ray
+    of depth d is d · |dir - unit(point)| = 2 d sin(θ/2) ≤ d · θ ≤ d · bound."""
+    K = np.asarray(intrinsics, dtype=np.float64).reshape(-1, 3, 3)
+    return float(np.arcsin(min(1.0, np.sqrt(0.5) / min(K[:, 0, 0].min(), K[:, 1, 1].min()))))
+
+
+@dataclass(frozen=True)
+class FrameHits:
+    """One keyframe's labelled camera hits in the *global* frame (float64), before grid and dynamic filters."""
+
+    points: np.ndarray        # [H, 3] LiDAR point, global
+    centers: np.ndarray       # [6, 3] camera centres at each camera's timestamp, global
+    directions: np.ndarray    # [H, 3] unit pixel-centre directions, global
+    depths: np.ndarray        # [H] distance camera centre → point
+    labels: np.ndarray        # uint8 [H] Occ3D class
+    cameras: np.ndarray       # int8 [H]
+    pixels: np.ndarray        # float32 [H, 2] pixel centres
+    point_index: np.ndarray   # int64 [H] index of the point in its sweep
+
+
+def frame_hits(sample, dataroot, config: RayConfig = RayConfig()) -> FrameHits:
+    """Load a SampleRecord's LiDAR + lidarseg and project every labelled point into its six camera images."""
+    if sample.lidarseg_path is None:
+        raise DatasetError(f"sample {sample.token} (scene {sample.scene_name}) has no lidarseg labels: rays need "
+                           f"nuScenes-lidarseg (<version>/lidarseg.json and its label files)")
+    sweep = load_lidar(dataroot, sample.lidar.path)
+    raw = load_lidarseg(dataroot, sample.lidarseg_path, len(sweep))
+    kept = np.flatnonzero(~np.isin(raw, config.ignored_raw_labels))
+    lidar2global = sample.lidar.ego2global @ sample.lidar.sensor2ego
+    points = transform_points(lidar2global, sweep[kept, :3])
+    cam2global = np.stack([c.ego2global @ c.sensor2ego for c in sample.cameras])
+    K = sample.intrinsics
+    hits = project_points(points, np.stack([invert(T) for T in cam2global]), K, sample.image_sizes,
+                          config.min_depth)
+    centers_px = pixel_centers(hits.uv)
+    rays_cam = np.einsum("hij,hj->hi", np.linalg.inv(K)[hits.camera],
+                         np.concatenate([centers_px, np.ones((len(centers_px), 1))], axis=1))
+    dirs = np.einsum("hij,hj->hi", cam2global[hits.camera, :3, :3], rays_cam)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    hit_points = points[hits.point_index]
+    centers = cam2global[:, :3, 3]
+    return FrameHits(
+        points=hit_points, centers=centers, directions=dirs,
+        depths=np.linalg.norm(hit_points - centers[hits.camera], axis=1),
+        labels=map_lidarseg(raw[kept][hits.point_index]), cameras=hits.camera.astype(np.int8),
+        pixels=centers_px.astype(np.float32), point_index=kept[hits.point_index],
+    )
+
+
+class RayBuilder:
+    """Builds the rays of a keyframe and its temporal neighbours from a SampleIndex (per-frame hits cached)."""
+
+    def __init__(self, index, dataroot, config: RayConfig = RayConfig(), cache_size: int = 16):
+        self.index = index
+        self.dataroot = dataroot
+        self.config = config
+        self.cache_size = cache_size
+        self._cache: OrderedDict[int, FrameHits] = OrderedDict()
+
+    def frame(self, position: int) -> FrameHits:
+        """The (cached) global-frame hits of keyframe ``position``."""
+        if position in self._cache:
+            self._cache.move_to_end(position)
+            return self._cache[position]
+        hits = frame_hits(self.index[position], self.dataroot, self.config)
+        if self.cache_size > 0:
+            self._cache[position] = hits
+            while len(self._cache) > self.cache_size:
+                self._cache.popitem(last=False)
+        return hits
+
+    def rays(self, position: int) -> RayBatch:
+        """All rays of keyframe ``position`` and its neighbours t ∈ [-O, O] (same scene), current ego frame."""
+        to_current = invert(self.index.arrays["lidar_ego2global"][position])
+        dynamic = np.asarray(DYNAMIC_FILTER_CLASSES, dtype=np.uint8)
+        parts = []
+        for t, j in self.index.neighbours(position, self.config.horizon):
+            f = self.frame(j)
+            points = transform_points(to_current, f.points)
+            keep = GRID.contains(points)
+            if t != 0 and self.config.dynamic_filter:
+                keep &= ~np.isin(f.labels, dynamic)
+            cams = f.cameras[keep]
+            parts.append(RayBatch(
+                origins=transform_points(to_current, f.centers)[cams].astype(np.float32),
+                directions=(f.directions[keep] @ to_current[:3, :3].T).astype(np.float32),
+                depths=f.depths[keep].astype(np.float32), labels=f.labels[keep],
+                time_offsets=np.full(len(cams), t, dtype=np.int8), cameras=cams, pixels=f.pixels[keep],
+            ))
+        return RayBatch.concatenate(parts)
+
+    def visible_point_labels(self, position: int) -> np.ndarray:
+        """uint8 [P]: Occ3D labels of the distinct LiDAR points of keyframe ``position`` inside the grid that
+        project into at least one camera (what the class counts N_c count; the same hits as the t = 0 rays)."""
+        f = self.frame(position)
+        inside = GRID.contains(transform_points(invert(self.index.arrays["lidar_ego2global"][position]), f.points))
+        _, first = np.unique(f.point_index[inside], return_index=True)
+        return f.labels[inside][first]
+
+
+def sample_rays(rays: RayBatch, num: int, rng: np.random.Generator) -> RayBatch:
+    """``num`` rays drawn uniformly from ``rays`` with ``rng`` (without replacement when there are enough)."""
+    if len(rays) == 0:
+        raise ValueError("cannot sample rays: the batch is empty (no LiDAR point projects into a camera)")
+    return rays.take(rng.choice(len(rays), size=num, replace=len(rays) < num))

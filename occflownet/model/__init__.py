@@ -1,0 +1,12 @@
+"""The occupancy model (torch): configuration/presets, network, checkpoints.
+
+``from occflownet.model import ModelConfig, PRESETS, get_preset, OccupancyModel, save_checkpoint, load_checkpoint``
+"""
+from occflownet.model.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
+from occflownet.model.config import PRESETS, ModelConfig, get_preset
+from occflownet.model.occupancy_model import InferenceGraph, OccupancyModel, create_model, fuse_occupancy
+
+__all__ = [
+    "ModelConfig", "PRESETS", "get_preset", "OccupancyModel", "InferenceGraph", "create_model", "fuse_occupancy",
+    "save_checkpoint", "load_checkpoint", "read_checkpoint", "CheckpointError",
+]

@@ -1,0 +1,88 @@
+"""3D decoder: a residual Conv3d trunk on the (possibly coarsened) grid and the per-voxel MLP heads Φσ, Φs.
+
+forward(trunk grid [B, Xc, Yc, Zc, C], fine grid [B, Xc, Yc, Zc, s, s, s, F] or None)
+→ (density logits [B, Xc, Yc, Zc, s³, 1], semantic logits [B, Xc, Yc, Zc, s³, 17]) in *block layout*;
+:func:`unblock` turns block layout into the grid's [B, X, Y, Z, ...] layout (X = Xc·s, ...).
+
+With stride s > 1 the trunk output is upsampled by a learned depth-to-space projection (one linear map per
+sub-voxel, i.e. a transposed Conv3d with kernel = stride = s), added to the full-resolution lifted features
+(skip), and the heads run on every full-resolution voxel. With s = 1 the heads run on the trunk output.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from occflownet.config import NUM_CLASSES
+
+
+class ResBlock3d(nn.Module):
+    """conv3x3x3-BN-ReLU-conv3x3x3-BN + identity, ReLU. [B, C, X, Y, Z] → same."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.conv1 = nn.Conv3d(channels, channels, kernel_size=3, padding=1, bias=False)
+        self.bn1 = nn.BatchNorm3d(channels)
+        self.conv2 = nn.Conv3d(channels, channels, kernel_size=3, padding=1, bias=False)
+        self.bn2 = nn.BatchNorm3d(channels)
+        self.relu = nn.ReLU(inplace=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = self.relu(self.bn1(self.conv1(x)))
+        return self.relu(self.bn2(self.conv2(out)) + x)
+
+
+def mlp(in_channels: int, hidden: tuple[int, ...], out_channels: int) -> nn.Sequential:
+    """Per-voxel MLP over the last dimension: Linear-ReLU per hidden layer, then a Linear output layer."""
+    layers, c = [], in_channels
+    for n in hidden:
+        layers += [nn.Linear(c, n), nn.ReLU(inplace=True)]
+        c = n
+    layers.append(nn.Linear(c, out_channels))
+    return nn.Sequential(*layers)
+
+
+def unblock(x: torch.Tensor, stride: int) -> torch.Tensor:
+    """Block layout [B, Xc, Yc, Zc, s³, *rest] → grid layout [B, Xc·s, Yc·s, Zc·s, *rest]."""
+    b, xc, yc, zc = x.shape[:4]
+    rest = tuple(x.shape[5:])
+    s = stride
+    x = x.reshape((b, xc, yc, zc, s, s, s) + rest)
+    x = x.permute((0, 1, 4, 2, 5, 3, 6) + tuple(range(7, 7 + len(rest))))
+    return x.reshape((b, xc * s, yc * s, zc * s) + rest)
+
+
+class VoxelDecoder(nn.Module):
+    """Residual 3D trunk at stride ``stride`` + depth-to-space upsampling + per-voxel heads Φσ, Φs."""
+
+    def __init__(self, in_channels: int, fine_channels: int, stride: int, channels: int, blocks: int,
+                 head_channels: int, sigma_hidden: tuple[int, ...], semantic_hidden: tuple[int, ...]):
+        super().__init__()
+        self.stride = stride
+        self.stem = nn.Sequential(nn.Conv3d(in_channels, channels, kernel_size=1, bias=False),
+                                  nn.BatchNorm3d(channels), nn.ReLU(inplace=True))
+        self.blocks = nn.Sequential(*[ResBlock3d(channels) for _ in range(blocks)])
+        if stride > 1:
+            self.up = nn.Linear(channels, stride ** 3 * head_channels)
+            self.skip = nn.Linear(fine_channels, head_channels) if fine_channels > 0 else None
+            head_in = head_channels
+        else:
+            self.up = self.skip = None
+            head_in = channels
+        self.head_channels = head_in
+        self.sigma_head = mlp(head_in, sigma_hidden, 1)
+        self.semantic_head = mlp(head_in, semantic_hidden, NUM_CLASSES)
+
+    def forward(self, trunk: torch.Tensor, fine: torch.Tensor | None):
+        b, xc, yc, zc, _ = trunk.shape
+        x = self.blocks(self.stem(trunk.permute(0, 4, 1, 2, 3)))                  # [B, Ct, Xc, Yc, Zc]
+        x = x.permute(0, 2, 3, 4, 1)                                               # [B, Xc, Yc, Zc, Ct]
+        s3 = self.stride ** 3
+        if self.up is not None:
+            x = self.up(x).reshape(b, xc, yc, zc, s3, self.head_channels)
+            if self.skip is not None:
+                x = x + self.skip(fine.reshape(b, xc, yc, zc, s3, fine.shape[-1]))
+            x = torch.relu(x)
+        else:
+            x = x.reshape(b, xc, yc, zc, 1, self.head_channels)
+        return self.sigma_head(x), self.semantic_head(x)

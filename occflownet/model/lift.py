@@ -1,0 +1,126 @@
+"""LSS lifting: per-pixel depth distribution × context features, splatted into the ego-frame voxel grid.
+
+Geometry is computed inside the graph from the runtime ``feature_intrinsics`` and ``cam2ego``:
+feature cell (u, v) with depth bin centre d (camera-frame z-depth) is the camera point ``d · K_f⁻¹ [u, v, 1]``,
+moved into the ego frame by ``cam2ego``, and falls into voxel ``floor((p - GRID.lower) / GRID.voxel_size)``.
+Points outside the grid contribute nothing (they are routed to a discarded dump row).
+
+Pooling is a scatter-add (``index_add`` → ONNX ScatterND with ``reduction="add"``, correct for repeated indices).
+The trunk grid is the full grid coarsened by ``stride``; the optional fine grid keeps full resolution in a
+*block layout* [B, X/s, Y/s, Z/s, s, s, s, F] so the decoder can combine both without transposes.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from occflownet.config import GRID
+
+
+class DepthContextHead(nn.Module):
+    """Stride-16 features [N, C_in, h, w] → (depth logits [N, D, h, w], context [N, C, h, w], fine [N, F, h, w])."""
+
+    def __init__(self, in_channels: int, num_bins: int, context_channels: int, fine_channels: int):
+        super().__init__()
+        self.splits = (num_bins, context_channels, fine_channels)
+        self.body = nn.Sequential(
+            nn.Conv2d(in_channels, in_channels, kernel_size=3, padding=1, bias=False),
+            nn.BatchNorm2d(in_channels),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(in_channels, sum(self.splits), kernel_size=1),
+        )
+
+    def forward(self, x: torch.Tensor):
+        return torch.split(self.body(x), list(self.splits), dim=1)
+
+
+def invert_3x3(m: torch.Tensor) -> torch.Tensor:
+    """Inverse of [..., 3, 3] matrices by cofactors (elementwise ops only, so it exports to plain ONNX)."""
+    a, b, c = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    d, e, f = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    g, h, i = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    co = [e * i - f * h, c * h - b * i, b * f - c * e,
+          f * g - d * i, a * i - c * g, c * d - a * f,
+          d * h - e * g, b * g - a * h, a * e - b * d]
+    det = a * co[0] + b * co[3] + c * co[6]
+    inv = torch.stack(co, dim=-1) / det[..., None]
+    return inv.reshape(m.shape)
+
+
+def frustum_points(feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor, depths: torch.Tensor,
+                   h: int, w: int) -> torch.Tensor:
+    """Ego-frame positions [B, V, D, h, w, 3] of the frustum points (feature cell centres × depth bins).
+
+    feature_intrinsics [B, V, 3, 3] (camera frame → feature-map pixels); cam2ego [B, V, 4, 4];
+    depths [D] z-depths in metres. Written with explicit products and sums (no MatMul) so that torch and
+    onnxruntime compute bit-identical coordinates and therefore identical voxel indices.
+    """
+    k_inv = invert_3x3(feature_intrinsics)[:, :, None, None]                       # [B, V, 1, 1, 3, 3]
+    u = torch.arange(w, dtype=torch.float32, device=depths.device)[None, :]        # [1, w]
+    v = torch.arange(h, dtype=torch.float32, device=depths.device)[:, None]        # [h, 1]
+    ray = [k_inv[..., r, 0] * u + k_inv[..., r, 1] * v + k_inv[..., r, 2] for r in range(3)]  # 3 × [B,V,h,w]
+    rot = cam2ego[:, :, None, None, :3, :3]
+    direction = [rot[..., r, 0] * ray[0] + rot[..., r, 1] * ray[1] + rot[..., r, 2] * ray[2] for r in range(3)]
+    origin = cam2ego[:, :, None, None, None, :3, 3]                                 # [B, V, 1, 1, 1, 3]
+    direction = torch.stack(direction, dim=-1)[:, :, None]                          # [B, V, 1, h, w, 3]
+    return origin + depths[:, None, None, None] * direction                         # [B, V, D, h, w, 3]
+
+
+def voxel_rows(points: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
+    """Ego points [B, ...,3] → flat row indices into the trunk grid and the block-layout fine grid.
+
+    Returns (coarse_rows int64 [B, ...], fine_rows int64 [B, ...], coarse_dump, fine_dump): rows of points outside
+    the grid equal the dump index (one past the last valid row) so a scatter can discard them.
+    """
+    lower = torch.tensor(GRID.lower, dtype=torch.float32, device=points.device)
+    index = torch.floor((points - lower) / GRID.voxel_size).to(torch.int64)         # [B, ..., 3]
+    shape = torch.tensor(GRID.shape, dtype=torch.int64, device=points.device)
+    valid = torch.all((index >= 0) & (index < shape), dim=-1)                       # [B, ...]
+    index = torch.where(valid[..., None], index, torch.zeros_like(index))
+    cx, cy, cz = (n // stride for n in GRID.shape)
+    coarse = torch.div(index, stride, rounding_mode="floor")                        # [B, ..., 3] (>= 0)
+    sub = index - coarse * stride
+    batch = torch.arange(points.shape[0], device=points.device).reshape((-1,) + (1,) * (points.dim() - 2))
+    coarse_rows = ((batch * cx + coarse[..., 0]) * cy + coarse[..., 1]) * cz + coarse[..., 2]
+    fine_rows = ((coarse_rows * stride + sub[..., 0]) * stride + sub[..., 1]) * stride + sub[..., 2]
+    coarse_dump = points.shape[0] * cx * cy * cz
+    fine_dump = coarse_dump * stride ** 3
+    coarse_rows = torch.where(valid, coarse_rows, torch.full_like(coarse_rows, coarse_dump))
+    fine_rows = torch.where(valid, fine_rows, torch.full_like(fine_rows, fine_dump))
+    return coarse_rows, fine_rows, coarse_dump, fine_dump
+
+
+def scatter_pool(features: torch.Tensor, rows: torch.Tensor, num_rows) -> torch.Tensor:
+    """Sum ``features`` [N, C] into ``num_rows + 1`` rows by ``rows`` [N] (row ``num_rows`` = dump, dropped)."""
+    out = features.new_zeros((num_rows + 1, features.shape[1]))
+    out = torch.index_add(out, 0, rows, features)
+    return out[:num_rows]
+
+
+class LiftSplat(nn.Module):
+    """Outer product of depth distribution and context, splatted into the voxel grid(s).
+
+    forward(depth_prob [B, V, D, h, w], context [B, V, h, w, C], fine [B, V, h, w, F] or None,
+            feature_intrinsics [B, V, 3, 3], cam2ego [B, V, 4, 4])
+    → (trunk grid [B, X/s, Y/s, Z/s, C], fine grid [B, X/s, Y/s, Z/s, s, s, s, F] or None), ego frame.
+    """
+
+    def __init__(self, depth_centers: list[float], stride: int):
+        super().__init__()
+        self.stride = stride
+        self.register_buffer("depths", torch.tensor(depth_centers, dtype=torch.float32), persistent=False)
+
+    def forward(self, depth_prob, context, fine, feature_intrinsics, cam2ego):
+        b, _, _, h, w = depth_prob.shape
+        points = frustum_points(feature_intrinsics, cam2ego, self.depths, h, w)
+        coarse_rows, fine_rows, coarse_dump, fine_dump = voxel_rows(points, self.stride)
+        weight = depth_prob[..., None]                                             # [B, V, D, h, w, 1]
+        s = self.stride
+        cx, cy, cz = (n // s for n in GRID.shape)
+        lifted = (weight * context[:, :, None]).reshape(-1, context.shape[-1])     # [N, C]
+        trunk = scatter_pool(lifted, coarse_rows.reshape(-1), coarse_dump).reshape(b, cx, cy, cz, -1)
+        if fine is None:
+            return trunk, None
+        lifted_fine = (weight * fine[:, :, None]).reshape(-1, fine.shape[-1])
+        fine_grid = scatter_pool(lifted_fine, fine_rows.reshape(-1), fine_dump)
+        return trunk, fine_grid.reshape(b, cx, cy, cz, s, s, s, -1)

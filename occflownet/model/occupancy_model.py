@@ -1,0 +1,120 @@
+"""The full occupancy network: uint8 images → preprocessing → ResNet → neck → LSS lift → 3D decoder → σ, logits.
+
+Inputs (all batch-first, camera order ``occflownet.config.CAMERAS``):
+- images uint8 [B, 6, H, W, 3] RGB, any H×W;
+- intrinsics float32 [B, 6, 3, 3] for that H×W (camera frame → pixels, OpenCV camera);
+- cam2ego float32 [B, 6, 4, 4] (camera frame → ego frame of the current keyframe).
+Outputs are in the ego frame, grid indexed [x, y, z] (``occflownet.config.GRID``).
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from occflownet.config import FREE
+from occflownet.model.backbone import ResNet
+from occflownet.model.config import FEATURE_STRIDE, ModelConfig
+from occflownet.model.decoder import VoxelDecoder, unblock
+from occflownet.model.lift import DepthContextHead, LiftSplat
+from occflownet.model.neck import Stride16Neck
+from occflownet.model.preprocess import preprocess_images, scale_intrinsics_to_features
+
+NUM_CAMERAS = 6
+
+
+def fuse_occupancy(density: torch.Tensor, logits: torch.Tensor, threshold: float) -> torch.Tensor:
+    """occupancy uint8 [...] = argmax(logits [..., 17]) where density [...] >= threshold, else 17 (free)."""
+    labels = torch.argmax(logits, dim=-1)
+    return torch.where(density >= threshold, labels, torch.full_like(labels, FREE)).to(torch.uint8)
+
+
+class OccupancyModel(nn.Module):
+    """OccFlowNet-style camera-only occupancy model (see the module docstring for inputs)."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.backbone = ResNet(cfg.backbone_block, cfg.backbone_layers, cfg.backbone_width)
+        self.neck = Stride16Neck(self.backbone.out_channels, cfg.neck_channels)
+        fine = cfg.fine_channels if cfg.uses_fine_skip else 0
+        self.depth_head = DepthContextHead(cfg.neck_channels, cfg.num_depth_bins, cfg.context_channels, fine)
+        self.lift = LiftSplat(cfg.depth_bin_centers(), cfg.decoder_stride)
+        self.decoder = VoxelDecoder(cfg.context_channels, fine, cfg.decoder_stride, cfg.decoder_channels,
+                                    cfg.decoder_blocks, cfg.head_channels, cfg.sigma_hidden, cfg.semantic_hidden)
+
+    # ---------------------------------------------------------------- shared trunk
+    def _check_inputs(self, images, intrinsics, cam2ego):
+        if images.dtype != torch.uint8 or images.dim() != 5 or images.shape[1] != NUM_CAMERAS \
+                or images.shape[4] != 3:
+            raise ValueError(f"images must be uint8 [B, 6, H, W, 3], got {images.dtype} {tuple(images.shape)}")
+        if intrinsics.dim() != 4 or tuple(intrinsics.shape[1:]) != (NUM_CAMERAS, 3, 3):
+            raise ValueError(f"intrinsics must be [B, 6, 3, 3], got {tuple(intrinsics.shape)}")
+        if cam2ego.dim() != 4 or tuple(cam2ego.shape[1:]) != (NUM_CAMERAS, 4, 4):
+            raise ValueError(f"cam2ego must be [B, 6, 4, 4], got {tuple(cam2ego.shape)}")
+        return intrinsics.to(torch.float32), cam2ego.to(torch.float32)
+
+    def _encode(self, images, intrinsics, cam2ego):
+        """→ (σ logits [B,Xc,Yc,Zc,s³,1], semantic logits [B,Xc,Yc,Zc,s³,17] (block layout),
+        depth_prob [B, 6, D, h, w], feature_intrinsics [B, 6, 3, 3])."""
+        intrinsics, cam2ego = self._check_inputs(images, intrinsics, cam2ego)
+        cfg = self.cfg
+        b = images.shape[0]
+        x, input_k = preprocess_images(images, intrinsics, cfg.input_size, cfg.image_mean, cfg.image_std)
+        features = self.neck(*self.backbone(x))                                    # [B*6, N, h, w]
+        h, w = features.shape[-2:]
+        depth_logits, context, fine = self.depth_head(features)
+        depth_prob = torch.softmax(depth_logits, dim=1).reshape(b, NUM_CAMERAS, -1, h, w)
+        context = context.reshape(b, NUM_CAMERAS, -1, h, w).permute(0, 1, 3, 4, 2)  # [B, 6, h, w, C]
+        if fine.shape[1] > 0:
+            fine = fine.reshape(b, NUM_CAMERAS, -1, h, w).permute(0, 1, 3, 4, 2)
+        else:
+            fine = None
+        feature_k = scale_intrinsics_to_features(input_k, FEATURE_STRIDE)
+        trunk, fine_grid = self.lift(depth_prob, context, fine, feature_k, cam2ego)
+        sigma_logits, semantic_logits = self.decoder(trunk, fine_grid)
+        return sigma_logits, semantic_logits, depth_prob, feature_k
+
+    # ---------------------------------------------------------------- public entry points
+    def forward(self, images: torch.Tensor, intrinsics: torch.Tensor, cam2ego: torch.Tensor) -> dict:
+        """Training/analysis outputs:
+        density float [B, 200, 200, 16] (σ ∈ [0, 1]); logits float [B, 200, 200, 16, 17];
+        depth_prob float [B, 6, D, h, w] (softmax over D, z-depth bins ``cfg.depth_bin_centers()``);
+        feature_intrinsics float [B, 6, 3, 3] (camera frame → feature-map pixel coordinates);
+        occupancy uint8 [B, 200, 200, 16] (fused with τ = cfg.threshold)."""
+        sigma_logits, semantic_logits, depth_prob, feature_k = self._encode(images, intrinsics, cam2ego)
+        s = self.cfg.decoder_stride
+        density = unblock(torch.sigmoid(sigma_logits[..., 0]), s)
+        logits = unblock(semantic_logits, s)
+        with torch.no_grad():
+            occupancy = fuse_occupancy(density, logits, self.cfg.threshold)
+        return {"density": density, "logits": logits, "depth_prob": depth_prob,
+                "feature_intrinsics": feature_k, "occupancy": occupancy}
+
+    def inference(self, images: torch.Tensor, intrinsics: torch.Tensor, cam2ego: torch.Tensor):
+        """The exported path: → (occupancy uint8 [B, 200, 200, 16], density float32 [B, 200, 200, 16]).
+
+        Fuses in block layout so only the two small outputs are rearranged (the logits never are)."""
+        sigma_logits, semantic_logits, _, _ = self._encode(images, intrinsics, cam2ego)
+        s = self.cfg.decoder_stride
+        density = torch.sigmoid(sigma_logits[..., 0])
+        occupancy = fuse_occupancy(density, semantic_logits, self.cfg.threshold)
+        return unblock(occupancy, s), unblock(density, s)
+
+
+class InferenceGraph(nn.Module):
+    """Wrapper whose forward is :meth:`OccupancyModel.inference` (the module that is exported to ONNX)."""
+
+    def __init__(self, model: OccupancyModel):
+        super().__init__()
+        self.model = model
+
+    def forward(self, images, intrinsics, cam2ego):
+        return self.model.inference(images, intrinsics, cam2ego)
+
+
+def create_model(cfg: ModelConfig, seed: int | None = None) -> OccupancyModel:
+    """Build a model; with ``seed`` torch's RNG is seeded first, so the same seed gives the same weights."""
+    if seed is not None:
+        torch.manual_seed(int(seed))
+    return OccupancyModel(cfg)
+

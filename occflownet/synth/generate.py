@@ -1,0 +1,214 @@
+"""Write a synthetic dataset in the exact nuScenes (+ lidarseg, + Occ3D) layout.
+
+    ROOT/<version>/{13 tables}.json, lidarseg.json, splits.json
+    ROOT/samples/CAM_*/<log>__<channel>__<timestamp>.jpg
+    ROOT/samples/LIDAR_TOP/<log>__LIDAR_TOP__<timestamp>.pcd.bin   float32 [N, 5] (x, y, z, intensity, ring), LiDAR frame
+    ROOT/lidarseg/<version>/<lidar sample_data token>_lidarseg.bin  uint8 [N] raw lidarseg index
+    ROOT/gts/<scene name>/<sample token>/labels.npz                 semantics, mask_lidar, mask_camera uint8 [200,200,16]
+    ROOT/maps/<map token>.png, ROOT/preview/<sample token>.png (with preview=True)
+
+Only keyframes are written (every sample_data record is a keyframe).
+"""
+from __future__ import annotations
+
+import io
+import json
+import shutil
+import sys
+import time
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from occflownet.config import CAMERAS, LIDAR
+from occflownet.geometry import yaw_to_quaternion
+from occflownet.synth.frame import Keyframe, SensorRig, render_keyframe
+from occflownet.synth.layout import WorldConfig, build_world
+from occflownet.synth.writer import (Tables, calibrated_sensor_records, link, pose_record, token,
+                                     visibility_token)
+
+DEFAULT_VERSION = "v1.0-trainval"
+FIRST_TIMESTAMP_US = 1533151603000000
+ANNOTATION_RANGE_M = 60.0  # agents whose centre is this close to the ego (xy) are annotated
+
+
+@dataclass
+class SynthResult:
+    root: Path
+    version: str
+    scene_names: list[str]
+    num_samples: int
+    seconds: float
+
+
+def write_labels_npz(path: Path, semantics: np.ndarray, mask_lidar: np.ndarray, mask_camera: np.ndarray) -> None:
+    """Occ3D labels.npz, byte-identical for identical arrays (fixed zip timestamps, unlike ``np.savez``)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        for key, arr in (("semantics", semantics), ("mask_lidar", mask_lidar), ("mask_camera", mask_camera)):
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.ascontiguousarray(arr, dtype=np.uint8), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            zf.writestr(info, buf.getvalue())
+
+
+def _clear(root: Path, version: str, overwrite: bool) -> None:
+    if (root / version).exists() and any((root / version).iterdir()):
+        if not overwrite:
+            raise FileExistsError(f"{root / version} already holds a dataset; pass overwrite=True (--overwrite)")
+        for sub in (root / version, root / "samples", root / "lidarseg" / version, root / "gts", root / "maps",
+                    root / "preview"):
+            if sub.exists():
+                shutil.rmtree(sub)
+
+
+def generate(out, scenes: int = 1, frames: int = 6, seed: int = 0, width: int = 400, height: int = 225,
+             version: str = DEFAULT_VERSION, preview: bool = False, config: WorldConfig = WorldConfig(),
+             rig: SensorRig | None = None, progress: bool = True, overwrite: bool = False) -> SynthResult:
+    """Generate ``scenes`` scenes of ``frames`` keyframes each under ``out``. Deterministic for ``seed``."""
+    import cv2
+    from tqdm import tqdm
+
+    if scenes < 1 or frames < 1:
+        raise ValueError(f"need at least one scene and one frame, got scenes={scenes}, frames={frames}")
+    if width < 16 or height < 16:
+        raise ValueError(f"image size {width}x{height} too small (min 16x16)")
+    start = time.perf_counter()
+    root = Path(out)
+    _clear(root, version, overwrite)
+    rig = rig or SensorRig.default(width, height)
+    tables = Tables(seed)
+    bar = tqdm(total=scenes * frames, desc="synth keyframes", unit="kf", file=sys.stderr, disable=not progress)
+    scene_names, log_tokens, first_world = [], [], None
+    for s in range(scenes):
+        world = build_world(config, seed, s, frames)
+        first_world = first_world or world
+        key = f"scene{s}"
+        logfile = f"n{seed % 1000:03d}-2018-08-{1 + s % 28:02d}-synth-{s:04d}"
+        log_tok = token(seed, key, "log")
+        log_tokens.append(log_tok)
+        tables.t["log"].append({"token": log_tok, "logfile": logfile, "vehicle": "synth-ego",
+                                "date_captured": f"2018-08-{1 + s % 28:02d}", "location": "synth-city"})
+        cs = calibrated_sensor_records(tables, key, rig.intrinsics, rig.cam2ego, rig.lidar2ego)
+        t0 = FIRST_TIMESTAMP_US + s * 1_000_000_000
+        samples, channel_sd = [], {ch: [] for ch in (*CAMERAS, LIDAR)}
+        ann_by_agent: dict[int, list[dict]] = {}
+        for k in range(frames):
+            kf = render_keyframe(world, k, rig, t0, seed, s)
+            sample_tok = token(seed, key, "sample", k)
+            samples.append({"token": sample_tok, "timestamp": kf.lidar_time_us, "scene_token": token(seed, key)})
+            records = _sensor_records(root, version, tables, rig, kf, key, k, logfile, sample_tok, cs, cv2)
+            for ch, rec in records.items():
+                channel_sd[ch].append(rec)
+            for idx, ann in _annotations(world, kf, key, k, sample_tok, tables).items():
+                ann_by_agent.setdefault(idx, []).append(ann)
+            write_labels_npz(root / "gts" / world.name / sample_tok / "labels.npz", kf.semantics, kf.mask_lidar,
+                             kf.mask_camera)
+            if preview:
+                from occflownet.synth.preview import preview_image
+
+                (root / "preview").mkdir(parents=True, exist_ok=True)
+                cv2.imwrite(str(root / "preview" / f"{sample_tok}.png"),
+                            cv2.cvtColor(preview_image(kf, rig), cv2.COLOR_RGB2BGR))
+            bar.update(1)
+        link(samples)
+        tables.t["sample"] += samples
+        for recs in channel_sd.values():
+            link(recs)
+            tables.t["sample_data"] += recs
+        for idx in sorted(ann_by_agent):
+            anns = ann_by_agent[idx]
+            link(anns)
+            tables.t["sample_annotation"] += anns
+            tables.t["instance"].append({
+                "token": anns[0]["instance_token"], "category_token": tables.category_token(world.agents[idx].raw),
+                "nbr_annotations": len(anns), "first_annotation_token": anns[0]["token"],
+                "last_annotation_token": anns[-1]["token"]})
+        tables.t["scene"].append({
+            "token": token(seed, key), "log_token": log_tok, "nbr_samples": len(samples),
+            "first_sample_token": samples[0]["token"], "last_sample_token": samples[-1]["token"],
+            "name": world.name, "description": _describe(world, seed)})
+        scene_names.append(world.name)
+    bar.close()
+
+    map_tok = token(seed, "map")
+    (root / "maps").mkdir(parents=True, exist_ok=True)
+    drivable = (first_world.ground.cls[::10, ::10] == 11).astype(np.uint8) * 255
+    cv2.imwrite(str(root / "maps" / f"{map_tok}.png"), drivable)
+    tables.t["map"] = [{"token": map_tok, "log_tokens": log_tokens, "category": "semantic_prior",
+                        "filename": f"maps/{map_tok}.png"}]
+    tables.write(root / version)
+    splits = {"train": scene_names[:-1], "val": scene_names[-1:]} if scenes >= 2 else \
+        {"train": scene_names, "val": scene_names}
+    with open(root / version / "splits.json", "w") as f:
+        json.dump(splits, f, indent=1)
+    return SynthResult(root, version, scene_names, scenes * frames, time.perf_counter() - start)
+
+
+def _sensor_records(root, version, tables, rig, kf: Keyframe, key, k, logfile, sample_tok, cs, cv2) -> dict:
+    """Write one keyframe's images, point cloud and lidarseg labels; return channel → sample_data record."""
+    out = {}
+    entries = [(ch, kf.camera_times_us[c], kf.camera_ego2global[c]) for c, ch in enumerate(CAMERAS)]
+    entries.append((LIDAR, kf.lidar_time_us, kf.lidar_ego2global))
+    for c, (ch, us, pose) in enumerate(entries):
+        sd_tok = token(tables.seed, key, "sample_data", ch, k)
+        ego_tok = token(tables.seed, key, "ego_pose", ch, k)
+        tables.t["ego_pose"].append(pose_record(ego_tok, pose, timestamp=us))
+        ext = "jpg" if ch != LIDAR else "pcd.bin"
+        rel = f"samples/{ch}/{logfile}__{ch}__{us}.{ext}"
+        (root / "samples" / ch).mkdir(parents=True, exist_ok=True)
+        if ch != LIDAR:
+            bgr = cv2.cvtColor(kf.cameras[c].rgb, cv2.COLOR_RGB2BGR)
+            ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 92])
+            (root / rel).write_bytes(buf.tobytes())
+            w, h = rig.width, rig.height
+        else:
+            kf.scan.points.astype(np.float32).tofile(root / rel)
+            seg = f"lidarseg/{version}/{sd_tok}_lidarseg.bin"
+            (root / "lidarseg" / version).mkdir(parents=True, exist_ok=True)
+            kf.scan.raw.astype(np.uint8).tofile(root / seg)
+            tables.lidarseg.append({"token": sd_tok, "sample_data_token": sd_tok, "filename": seg})
+            w = h = 0
+        out[ch] = {"token": sd_tok, "sample_token": sample_tok, "ego_pose_token": ego_tok,
+                   "calibrated_sensor_token": cs[ch], "timestamp": us, "fileformat": ext.split(".")[0],
+                   "is_key_frame": True, "height": h, "width": w, "filename": rel}
+    return out
+
+
+def _annotations(world, kf: Keyframe, key, k, sample_tok, tables) -> dict[int, dict]:
+    """sample_annotation records (prev/next unset) of the agents near the ego at this keyframe, by agent index."""
+    t = kf.scene_time
+    ego_xy = kf.lidar_ego2global[:2, 3]
+    inst = kf.boxes.instance
+    n_agents = len(world.agents)
+    visible = np.zeros(n_agents + 1, np.int64)
+    alone = np.zeros(n_agents + 1, np.int64)
+    for cam in kf.cameras:
+        visible += np.bincount(np.where(inst >= 0, inst, n_agents), weights=cam.visible,
+                               minlength=n_agents + 1).astype(np.int64)
+        alone += np.bincount(np.where(inst >= 0, inst, n_agents), weights=cam.alone,
+                             minlength=n_agents + 1).astype(np.int64)
+    pts = np.bincount(kf.scan.instance[kf.scan.instance >= 0], minlength=n_agents)
+    out = {}
+    for i, agent in enumerate(world.agents):
+        center, yaw = world.annotation_box(i, t)
+        if np.hypot(*(center[:2] - ego_xy)) > ANNOTATION_RANGE_M:
+            continue
+        frac = visible[i] / alone[i] if alone[i] else 0.0
+        out[i] = {
+            "token": token(tables.seed, key, "sample_annotation", i, k), "sample_token": sample_tok,
+            "instance_token": token(tables.seed, key, "instance", i), "visibility_token": visibility_token(frac),
+            "attribute_tokens": [tables.attribute_token(agent.attribute)] if agent.attribute else [],
+            "translation": [float(v) for v in center], "size": [float(v) for v in agent.size],
+            "rotation": [float(v) for v in yaw_to_quaternion(yaw)], "prev": "", "next": "",
+            "num_lidar_pts": int(pts[i]), "num_radar_pts": 0}
+    return out
+
+
+def _describe(world, seed) -> str:
+    m = world.meta
+    return (f"synthetic street, seed {seed}: {m['lanes']} lane(s) per direction"
+            f"{', cross street' if m['cross_street'] else ''}, ego {world.ego_speed:.1f} m/s")

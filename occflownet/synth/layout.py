@@ -1,0 +1,355 @@
+"""Procedural layout of one synthetic scene: a main road along the scene's +x axis, maybe a cross street,
+sidewalks, lots with buildings / parks / plazas / a construction site, street furniture, and traffic.
+
+``build_world(config, seed, scene_index, frames)`` → ``world.World``. Deterministic: every random draw comes from
+``numpy.random.default_rng([seed, scene_index])``; no global RNG.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from occflownet.synth.agents import default_attribute, instance_color, make_agent
+from occflownet.synth.materials import MATERIALS, PAINT_WHITE, PAINT_YELLOW
+from occflownet.synth.world import Boxes, GroundRaster, World, scene_to_global
+
+KEYFRAME_INTERVAL_S = 0.5  # 2 Hz keyframes, like nuScenes
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """Size and density of a synthetic scene (the `synth` command's scene options)."""
+
+    margin: float = 100.0  # world extent [m] before the ego's start / after its end, and to each side
+    ego_speed: tuple[float, float] = (4.0, 8.0)  # m/s, uniform range per scene
+    lanes: tuple[int, int] = (1, 2)  # lanes per direction, inclusive range
+    traffic: float = 1.0  # scale of the moving/parked vehicle density
+    pedestrians: float = 1.0  # scale of the pedestrian density
+    cross_street_probability: float = 0.7
+    raster_res: float = 0.1  # ground raster cell [m]
+
+
+class _Builder:
+    """Accumulates static boxes and agents in the scene frame while the layout is drawn."""
+
+    def __init__(self, rng: np.random.Generator):
+        self.rng = rng
+        self.static: list[tuple] = []
+        self.agents = []
+
+    def box(self, kind, cx, cy, z0, z1, length, width, yaw=0.0, color=None, texture=None):
+        m = MATERIALS[kind]
+        color = instance_color(m.color, self.rng) if color is None else color
+        self.static.append(((cx, cy, (z0 + z1) / 2), (length / 2, width / 2, (z1 - z0) / 2), yaw, m.raw,
+                            color, m.texture if texture is None else texture, m.reflectivity))
+
+    def agent(self, kind, x, y, heading, speed=0.0, attribute=None):
+        attribute = default_attribute(kind, speed > 0, self.rng) if attribute is None else attribute
+        self.agents.append(make_agent(kind, self.rng, (x, y), heading, speed, attribute))
+
+    def static_boxes(self) -> Boxes:
+        s = self.static
+        if not s:
+            return Boxes.empty()
+        return Boxes(np.array([q[0] for q in s], float), np.array([q[1] for q in s], float),
+                     np.array([q[2] for q in s], float), np.array([q[3] for q in s], np.uint8),
+                     np.array([q[4] for q in s], np.float32), np.array([q[5] for q in s], np.int8),
+                     np.array([q[6] for q in s], np.float32), np.full(len(s), -1, np.int32))
+
+
+class _Raster:
+    def __init__(self, x0, x1, y0, y1, res):
+        self.x0, self.y0, self.res = x0, y0, res
+        nx, ny = int(np.ceil((x1 - x0) / res)), int(np.ceil((y1 - y0) / res))
+        self.cls = np.full((nx, ny), 14, np.uint8)  # terrain everywhere first
+        self.paint = np.zeros((nx, ny), np.uint8)
+
+    def _idx(self, v, origin, n):
+        return int(np.clip(round((v - origin) / self.res), 0, n))
+
+    def fill(self, arr, x0, x1, y0, y1, value):
+        i0, i1 = self._idx(x0, self.x0, arr.shape[0]), self._idx(x1, self.x0, arr.shape[0])
+        j0, j1 = self._idx(y0, self.y0, arr.shape[1]), self._idx(y1, self.y0, arr.shape[1])
+        arr[i0:i1, j0:j1] = value
+
+
+def build_world(config: WorldConfig, seed: int, scene_index: int, frames: int) -> World:
+    """Draw one scene. The ego starts at scene (0, lane y) and drives +x for ``frames`` keyframes."""
+    rng = np.random.default_rng([int(seed), int(scene_index)])
+    b = _Builder(rng)
+    ego_speed = rng.uniform(*config.ego_speed)
+    path = ego_speed * KEYFRAME_INTERVAL_S * max(frames - 1, 0)
+    m = config.margin
+    x_min, x_max, y_half = -m, path + m, m
+    ras = _Raster(x_min, x_max, -y_half, y_half, config.raster_res)
+
+    # --- cross-section of the main road (y): median, lanes, parking lanes, sidewalks -------------------------
+    n_lanes = int(rng.integers(config.lanes[0], config.lanes[1] + 1))
+    lane_w = rng.uniform(3.2, 3.7)
+    median = rng.uniform(1.5, 3.0) if (n_lanes >= 2 and rng.random() < 0.6) else 0.0
+    parking = {s: rng.random() < 0.6 for s in (-1, 1)}
+    parking[-1 if rng.random() < 0.5 else 1] = True  # at least one parking lane (parked agents live there)
+    road_edge = {s: median / 2 + n_lanes * lane_w + (2.4 if parking[s] else 0.0) for s in (-1, 1)}
+    sidewalk_w = rng.uniform(2.5, 4.5)
+    lot_front = {s: road_edge[s] + sidewalk_w for s in (-1, 1)}
+
+    cross = rng.random() < config.cross_street_probability
+    xc = rng.uniform(-10.0, path + 40.0) if cross else None
+    cross_half = rng.uniform(3.2, 4.5) if cross else 0.0
+    corridor = (xc - cross_half - sidewalk_w, xc + cross_half + sidewalk_w) if cross else (np.inf, np.inf)
+
+    for s in (-1, 1):
+        lo, hi = sorted((s * road_edge[s], s * lot_front[s]))
+        ras.fill(ras.cls, x_min, x_max, lo, hi, 13)
+    if cross:
+        ras.fill(ras.cls, corridor[0], corridor[1], -y_half, y_half, 13)
+        ras.fill(ras.cls, xc - cross_half, xc + cross_half, -y_half, y_half, 11)
+    ras.fill(ras.cls, x_min, x_max, -road_edge[-1], road_edge[1], 11)
+    if median:
+        ras.fill(ras.cls, x_min, x_max, -median / 2, median / 2, 12)
+        if cross:
+            ras.fill(ras.cls, xc - cross_half, xc + cross_half, -median / 2, median / 2, 11)
+
+    # --- paint: lane lines, centre line, crosswalks, stop lines ------------------------------------------------
+    in_cross = (lambda x0, x1: cross and x1 > corridor[0] and x0 < corridor[1])
+    for s in (-1, 1):
+        for k in range(1, n_lanes):  # dashed lines between lanes of one direction
+            y = s * (median / 2 + k * lane_w)
+            for x in np.arange(x_min, x_max, 9.0):
+                if not in_cross(x, x + 3):
+                    ras.fill(ras.paint, x, x + 3.0, y - 0.08, y + 0.08, PAINT_WHITE)
+        y = s * (median / 2 + n_lanes * lane_w)  # solid edge line
+        for x0, x1 in _gaps(x_min, x_max, corridor):
+            ras.fill(ras.paint, x0, x1, y - 0.08, y + 0.08, PAINT_WHITE)
+    if not median:
+        for x0, x1 in _gaps(x_min, x_max, corridor):
+            ras.fill(ras.paint, x0, x1, -0.22, -0.08, PAINT_YELLOW)
+            ras.fill(ras.paint, x0, x1, 0.08, 0.22, PAINT_YELLOW)
+    if cross:
+        for xs in (corridor[0], corridor[1] - 3.0):  # zebra crossings over the main road
+            for y in np.arange(-road_edge[-1] + 0.3, road_edge[1] - 0.3, 1.0):
+                ras.fill(ras.paint, xs, xs + 3.0, y, y + 0.5, PAINT_WHITE)
+        ras.fill(ras.paint, corridor[0] - 0.6, corridor[0] - 0.2, -road_edge[-1], -median / 2, PAINT_WHITE)
+        ras.fill(ras.paint, corridor[1] + 0.2, corridor[1] + 0.6, median / 2, road_edge[1], PAINT_WHITE)
+        ras.fill(ras.paint, xc - 0.08, xc + 0.08, -y_half, -lot_front[-1], PAINT_YELLOW)
+        ras.fill(ras.paint, xc - 0.08, xc + 0.08, lot_front[1], y_half, PAINT_YELLOW)
+
+    # --- lots along both sides: buildings, parks, plazas, one construction site near the ego's path ----------
+    site_side = -1 if rng.random() < 0.5 else 1
+    site_x = _free_x(rng, path / 2 + rng.uniform(-15, 15), 14.0, corridor)
+    for s in (-1, 1):
+        x = x_min
+        while x < x_max:
+            length = rng.uniform(10.0, 32.0)
+            if x + length > corridor[0] and x < corridor[1]:
+                x = corridor[1] + 0.5
+                continue
+            if s == site_side and x <= site_x < x + length + 14.0:
+                _construction_site(b, ras, s, site_x, lot_front[s], sidewalk_w)
+                x = site_x + 9.0
+                continue
+            _lot(b, ras, rng, s, x, min(x + length, x_max), lot_front[s])
+            x += length
+        _street_furniture(b, rng, s, x_min, x_max, road_edge[s], sidewalk_w, corridor)
+    if median:
+        for x in np.arange(x_min + rng.uniform(0, 20), x_max, rng.uniform(14, 30)):
+            if not in_cross(x - 2, x + 2):
+                b.box("vegetation", x, 0.0, 0.0, rng.uniform(0.6, 1.1), rng.uniform(1.5, 3.0), median * 0.6)
+
+    # --- traffic ------------------------------------------------------------------------------------------------
+    ego_lane = int(rng.integers(0, n_lanes))
+    ego_y = -(median / 2 + (ego_lane + 0.5) * lane_w)
+    _traffic(b, rng, config, x_min, x_max, n_lanes, lane_w, median, ego_lane, ego_speed, path, corridor)
+    for s in (-1, 1):
+        if parking[s]:
+            _parked(b, rng, config, s, x_min, x_max, road_edge[s], path, corridor)
+        _pedestrians(b, rng, config, s, x_min, x_max, road_edge[s], sidewalk_w, corridor)
+    if cross:
+        _cross_traffic(b, rng, config, xc, cross_half, road_edge, y_half)
+
+    yaw = rng.uniform(-np.pi, np.pi)
+    offset = rng.uniform(300.0, 1800.0, 2)
+    sun_az, sun_el = rng.uniform(-np.pi, np.pi), np.radians(rng.uniform(30.0, 60.0))
+    sun = np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])
+    ground = GroundRaster(ras.cls, ras.paint, x_min, -y_half, config.raster_res)
+    meta = {"lanes": n_lanes, "cross_street": bool(cross), "path_m": float(path), "extent_x": (x_min, x_max),
+            "extent_y": (-y_half, y_half)}
+    return World(name=f"scene-{scene_index + 1:04d}", scene2global=scene_to_global(yaw, offset), ground=ground,
+                 static=b.static_boxes(), agents=b.agents, ego_start=np.array([0.0, ego_y]), ego_speed=ego_speed,
+                 sun=sun, sky_seed=int(rng.integers(1 << 30)), meta=meta)
+
+
+def _gaps(x0, x1, corridor):
+    """The x-intervals of [x0, x1] outside the cross street's corridor."""
+    if not np.isfinite(corridor[0]):
+        return [(x0, x1)]
+    return [(x0, min(x1, corridor[0])), (max(x0, corridor[1]), x1)]
+
+
+def _free_x(rng, x, half, corridor):
+    if np.isfinite(corridor[0]) and x + half > corridor[0] and x - half < corridor[1]:
+        return corridor[1] + half + 1.0 if rng.random() < 0.5 else corridor[0] - half - 1.0
+    return x
+
+
+def _lot(b: _Builder, ras: _Raster, rng, s, x0, x1, front):
+    """One lot beside the road between x0 and x1 on side s (-1 right, +1 left), starting at |y| = front."""
+    kind = rng.choice(["building", "building", "building", "park", "plaza", "wall"], p=[.3, .2, .15, .15, .1, .1])
+    length = x1 - x0
+    xm = (x0 + x1) / 2
+    if kind == "building":
+        gap = rng.uniform(0.0, 4.0)
+        setback = 0.0 if rng.random() < 0.5 else rng.uniform(1.0, 6.0)
+        depth, height = rng.uniform(8.0, 20.0), rng.choice([rng.uniform(4.0, 9.0), rng.uniform(9.0, 24.0)])
+        b.box("building", xm, s * (front + setback + depth / 2), 0.0, height, max(length - gap, 3.0), depth)
+        if setback > 2.0 and rng.random() < 0.6:
+            for x in np.arange(x0 + 2.0, x1 - 1.0, rng.uniform(3.0, 6.0)):
+                b.box("vegetation", x, s * (front + setback / 2), 0.0, rng.uniform(0.5, 1.2), 1.2, setback * 0.5)
+    elif kind == "park":
+        for _ in range(int(length / 6) + 1):
+            x, y = rng.uniform(x0 + 1, x1 - 1), s * (front + rng.uniform(2.0, 25.0))
+            _tree(b, rng, x, y)
+        for _ in range(int(length / 8) + 1):
+            x, y = rng.uniform(x0 + 1, x1 - 1), s * (front + rng.uniform(1.0, 20.0))
+            b.box("vegetation", x, y, 0.0, rng.uniform(0.5, 1.5), rng.uniform(1.0, 3.0), rng.uniform(1.0, 3.0))
+    elif kind == "plaza":
+        lo, hi = sorted((s * front, s * (front + rng.uniform(8.0, 20.0))))
+        ras.fill(ras.cls, x0 + 0.5, x1 - 0.5, lo, hi, 12)
+        for _ in range(int(rng.integers(1, 4))):
+            b.box("static_other", rng.uniform(x0 + 1, x1 - 1), s * (front + rng.uniform(1.0, 6.0)), 0.0,
+                  rng.uniform(0.8, 2.2), rng.uniform(0.6, 2.5), rng.uniform(0.5, 1.5))
+        depth = rng.uniform(8.0, 15.0)
+        b.box("building", xm, s * (front + 22.0 + depth / 2), 0.0, rng.uniform(6.0, 20.0), length, depth)
+    else:  # a wall with trees behind it
+        b.box("wall", xm, s * (front + 0.6), 0.0, rng.uniform(1.2, 2.5), length - 0.5, 0.3)
+        for x in np.arange(x0 + 2.0, x1 - 1.0, rng.uniform(4.0, 8.0)):
+            _tree(b, rng, x, s * (front + rng.uniform(3.0, 8.0)))
+
+
+def _tree(b: _Builder, rng, x, y, trunk_height=None):
+    trunk = rng.uniform(1.8, 2.8) if trunk_height is None else trunk_height
+    crown = rng.uniform(2.0, 4.0)
+    b.box("trunk", x, y, 0.0, trunk + 0.3, 0.3, 0.3)
+    b.box("vegetation", x, y, trunk, trunk + rng.uniform(2.0, 4.0), crown, crown * rng.uniform(0.8, 1.2),
+          yaw=rng.uniform(0, np.pi / 2))
+
+
+def _street_furniture(b: _Builder, rng, s, x_min, x_max, edge, sidewalk_w, corridor):
+    """Trees and lamp posts by the kerb, bins and boxes at the back of the sidewalk (side s)."""
+    blocked = (lambda x: np.isfinite(corridor[0]) and corridor[0] - 1.0 < x < corridor[1] + 1.0)
+    x = x_min + rng.uniform(0, 10)
+    while x < x_max:
+        if not blocked(x):
+            if rng.random() < 0.55:
+                _tree(b, rng, x, s * (edge + 0.6), trunk_height=rng.uniform(2.2, 3.0))
+            elif rng.random() < 0.5:
+                b.box("pole", x, s * (edge + 0.3), 0.0, rng.uniform(5.5, 7.5), 0.2, 0.2)
+        x += rng.uniform(8.0, 16.0)
+    x = x_min + rng.uniform(0, 10)
+    while x < x_max:
+        if not blocked(x):
+            y = s * (edge + sidewalk_w - 0.45)
+            if rng.random() < 0.6:
+                b.agent("pushable", x, y, rng.uniform(-np.pi, np.pi))
+            else:
+                b.box("static_other", x, y, 0.0, rng.uniform(0.8, 1.6), rng.uniform(0.5, 1.5), 0.6)
+        x += rng.uniform(10.0, 30.0)
+
+
+def _construction_site(b: _Builder, ras: _Raster, s, x, front, sidewalk_w):
+    """A fenced site (other_flat ground) with barriers along the sidewalk, cones, and a construction vehicle."""
+    rng = b.rng
+    lo, hi = sorted((s * front, s * (front + 16.0)))
+    ras.fill(ras.cls, x - 8.0, x + 8.0, lo, hi, 12)
+    for bx in np.arange(x - 7.0, x + 7.5, 2.2):
+        b.agent("barrier", bx, s * (front + 0.4), 0.0)
+    for bx in (x - 8.0, x + 8.0):
+        for d in (2.5, 5.0, 7.5):
+            b.agent("barrier", bx, s * (front + d), np.pi / 2)
+    for cx in np.arange(x - 6.0, x + 6.5, 2.0):
+        b.agent("traffic_cone", cx, s * (front + 1.3), 0.0)
+    b.agent("construction", x + rng.uniform(-1.5, 1.5), s * (front + rng.uniform(5.5, 7.0)),
+            rng.uniform(-0.3, 0.3) + (0.0 if rng.random() < 0.5 else np.pi), speed=0.0)
+    b.box("building", x, s * (front + 14.0), 0.0, rng.uniform(3.0, 12.0), rng.uniform(8.0, 14.0), 4.0,
+          color=instance_color((0.7, 0.7, 0.72), rng))
+
+
+def _vehicle_kind(rng) -> str:
+    return str(rng.choice(["car", "truck", "bus", "motorcycle", "bicycle", "construction"],
+                          p=[0.64, 0.1, 0.07, 0.08, 0.07, 0.04]))
+
+
+def _traffic(b, rng, config, x_min, x_max, n_lanes, lane_w, median, ego_lane, ego_speed, path, corridor):
+    """Moving vehicles in every lane of the main road (constant speed per lane, so they never collide)."""
+    for s in (-1, 1):  # s = -1: lanes driving +x (right-hand traffic); s = +1: driving -x
+        for k in range(n_lanes):
+            y = s * (median / 2 + (k + 0.5) * lane_w)
+            heading = 0.0 if s < 0 else np.pi
+            ego = s < 0 and k == ego_lane
+            speed = ego_speed if ego else rng.uniform(3.0, 11.0)
+            travel = speed * (path / max(ego_speed, 1e-6) + 1.0)
+            x = x_min - (travel if s < 0 else 0.0) + rng.uniform(0, 15)
+            end = x_max + (travel if s > 0 else 0.0)
+            while x < end:
+                kind = _vehicle_kind(rng)
+                if ego and -12.0 < x < 14.0:  # keep the ego's own lane clear around it
+                    x = 14.0 + rng.uniform(0, 5)
+                    continue
+                b.agent(kind, x, y + rng.uniform(-0.3, 0.3), heading, speed)
+                length = b.agents[-1].size[1]
+                if kind == "truck" and not ego and rng.random() < 0.4:  # a trailer behind (moves with it)
+                    b.agent("trailer", x, y, heading, speed)
+                    trailer = b.agents[-1]
+                    back = length / 2 + 0.8 + trailer.size[1] / 2
+                    trailer.origin = trailer.origin - back * np.array([np.cos(heading), np.sin(heading)])
+                    length += 0.8 + trailer.size[1]
+                x += length + rng.uniform(8.0, 40.0) / max(config.traffic, 1e-3)
+
+
+def _parked(b, rng, config, s, x_min, x_max, edge, path, corridor):
+    """Parked vehicles in the parking lane of side s; the first few near the ego's path are of every kind."""
+    y = s * (edge - 1.2)
+    heading = 0.0 if s < 0 else np.pi
+    guaranteed = ["trailer", "bus", "truck", "motorcycle", "bicycle", "car"] if s < 0 else ["car", "trailer"]
+    rng.shuffle(guaranteed)
+    x = path / 2 - 30.0 + rng.uniform(0, 8)
+    while x < x_max - 5:
+        kind = guaranteed.pop() if guaranteed else str(rng.choice(["car", "car", "car", "truck", "trailer"]))
+        if np.isfinite(corridor[0]) and corridor[0] - 8.0 < x < corridor[1] + 8.0:
+            x = corridor[1] + 8.0
+            continue
+        b.agent(kind, x, y, heading, 0.0)
+        x += b.agents[-1].size[1] + rng.uniform(1.0, 20.0) / max(config.traffic, 1e-3)
+    x = path / 2 - 36.0
+    while x > x_min + 5:
+        if not (np.isfinite(corridor[0]) and corridor[0] - 8.0 < x < corridor[1] + 8.0):
+            b.agent("car", x, y, heading, 0.0)
+        x -= 5.0 + rng.uniform(1.0, 20.0) / max(config.traffic, 1e-3)
+
+
+def _pedestrians(b, rng, config, s, x_min, x_max, edge, sidewalk_w, corridor):
+    count = int(rng.poisson(6.0 * config.pedestrians * (x_max - x_min) / 100.0))
+    for _ in range(count):
+        x = rng.uniform(x_min, x_max)
+        y = s * (edge + rng.uniform(1.15, max(sidewalk_w - 1.25, 1.15)))
+        moving = rng.random() < 0.8
+        heading = (0.0 if rng.random() < 0.5 else np.pi) if moving else rng.uniform(-np.pi, np.pi)
+        b.agent("pedestrian", x, y, heading, rng.uniform(0.8, 1.6) if moving else 0.0)
+
+
+def _cross_traffic(b, rng, config, xc, half, road_edge, y_half):
+    """Vehicles stopped in queues on the cross street, waiting at the main road."""
+    for s in (-1, 1):
+        # right-hand traffic: coming from -y (s = -1) drives +y in the lane at x > xc, and vice versa
+        x = xc + (half / 2 if s < 0 else -half / 2)
+        heading = np.pi / 2 if s < 0 else -np.pi / 2
+        y = s * (road_edge[s] + 3.5)
+        for _ in range(int(rng.integers(0, 4))):
+            b.agent(str(rng.choice(["car", "car", "truck", "bus"])), x, 0.0, heading, 0.0,
+                    attribute="vehicle.stopped")
+            length = b.agents[-1].size[1]
+            b.agents[-1].origin = np.array([x, y + s * length / 2])
+            y += s * (length + rng.uniform(1.5, 4.0))
+            if abs(y) > y_half - 15:
+                break

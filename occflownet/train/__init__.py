@@ -1,0 +1,1 @@
+"""Training: configuration, data pipeline, optimisation loop with EMA, checkpoints, resume and DDP."""

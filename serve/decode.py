@@ -1,0 +1,157 @@
+"""Camera images of a request: header sniffing (size before decoding), OpenCV decoding, a common tensor size.
+
+- :func:`image_header` reads the pixel size from the JPEG SOF / PNG IHDR header without decoding, so an image whose
+  header claims more pixels than the limit is refused before any pixel buffer is allocated.
+- :func:`decode_image` decodes to RGB uint8 [H, W, 3] as stored (EXIF orientation is ignored: calibrations refer to
+  the sensor's pixel grid), refusing truncated files (JPEG without EOI after the scan, PNG without IEND).
+- :func:`stack_images`: the graph takes one [6, H, W, 3] tensor, so when the six images differ in size each one is
+  resized to the common size (the size most cameras share; ties go to the earlier camera in camera order) and its
+  intrinsics are scaled by the same (sx, sy). Images that already have the common size are passed untouched.
+"""
+from __future__ import annotations
+
+import struct
+from collections import Counter
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from serve.calibration import scale_intrinsics
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# JPEG start-of-frame markers (baseline, extended, progressive, lossless, arithmetic); not DHT (C4), JPG (C8), DAC (CC).
+_SOF_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_STANDALONE = {0x01, *range(0xD0, 0xD8)}  # TEM, RST0..7: markers without a length field
+
+
+class ImageError(ValueError):
+    """A camera's image part is unusable; ``camera`` names the part, ``status`` is the HTTP status to answer."""
+
+    def __init__(self, camera: str, message: str, status: int = 400):
+        super().__init__(f"{camera}: {message}")
+        self.camera = camera
+        self.status = status
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    format: str       # "jpeg" or "png"
+    width: int
+    height: int
+    data_start: int   # JPEG: offset of the first scan (SOS); PNG: offset after IHDR
+
+
+def _jpeg_header(data: bytes) -> ImageHeader:
+    pos, size, n = 2, None, len(data)
+    while pos < n:
+        if data[pos] != 0xFF:
+            raise ValueError(f"corrupt JPEG: expected a marker at byte {pos}")
+        while pos < n and data[pos] == 0xFF:  # fill bytes
+            pos += 1
+        if pos >= n:
+            break
+        marker = data[pos]
+        pos += 1
+        if marker in _STANDALONE:
+            continue
+        if marker == 0xD9:
+            break
+        if pos + 2 > n:
+            break
+        (length,) = struct.unpack(">H", data[pos:pos + 2])
+        if length < 2:
+            raise ValueError("corrupt JPEG: segment length < 2")
+        if marker in _SOF_MARKERS:
+            if pos + 7 > n:
+                break
+            height, width = struct.unpack(">HH", data[pos + 3:pos + 7])
+            size = (width, height)
+        if marker == 0xDA:  # start of scan: entropy-coded data follows
+            if size is None:
+                raise ValueError("corrupt JPEG: scan before any frame header")
+            if size[0] == 0 or size[1] == 0:
+                raise ValueError("JPEG with zero or deferred (DNL) dimensions is not supported")
+            return ImageHeader("jpeg", size[0], size[1], pos)
+        pos += length
+    raise ValueError("truncated JPEG: no complete frame header and scan")
+
+
+def _png_header(data: bytes) -> ImageHeader:
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise ValueError("truncated PNG: no IHDR chunk")
+    width, height = struct.unpack(">II", data[16:24])
+    if width == 0 or height == 0:
+        raise ValueError("PNG with zero width or height")
+    return ImageHeader("png", width, height, 33)
+
+
+def image_header(data: bytes) -> ImageHeader:
+    """Format and (width, height) from the header alone. Raises ValueError for anything but JPEG or PNG."""
+    if data[:2] == b"\xff\xd8":
+        return _jpeg_header(data)
+    if data[:8] == PNG_SIGNATURE:
+        return _png_header(data)
+    raise ValueError("not a JPEG or PNG image (unrecognised signature)")
+
+
+def _complete(data: bytes, header: ImageHeader) -> bool:
+    """Whether the file reaches its end marker: JPEG EOI after the first scan (0xFFD9 cannot occur inside
+    entropy-coded data), PNG IEND chunk."""
+    if header.format == "jpeg":
+        return data.rfind(b"\xff\xd9") >= header.data_start
+    return data.rfind(b"IEND") >= header.data_start
+
+
+def check_header(camera: str, data: bytes, max_pixels: int) -> ImageHeader:
+    """Header-only checks of one image part (nothing decoded): a JPEG or PNG, complete (end marker present), at
+    most ``max_pixels`` pixels. Raises ImageError naming ``camera`` (413 for the pixel limit, else 400)."""
+    if not data:
+        raise ImageError(camera, "image part is empty")
+    try:
+        header = image_header(data)
+    except ValueError as exc:
+        raise ImageError(camera, str(exc)) from None
+    pixels = header.width * header.height
+    if pixels > max_pixels:
+        raise ImageError(camera, f"image is {header.width}x{header.height} = {pixels} pixels, over the limit of "
+                                 f"{max_pixels} pixels per image", status=413)
+    if not _complete(data, header):
+        raise ImageError(camera, f"truncated {header.format.upper()} (no end marker): the upload is incomplete")
+    return header
+
+
+def decode_image(camera: str, data: bytes, max_pixels: int) -> np.ndarray:
+    """One image part → RGB uint8 [H, W, 3], after :func:`check_header`. Raises ImageError naming ``camera``."""
+    header = check_header(camera, data, max_pixels)
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    if bgr is None:
+        raise ImageError(camera, f"{header.format.upper()} could not be decoded (corrupt data)")
+    if bgr.shape[:2] != (header.height, header.width):
+        raise ImageError(camera, f"decoded size {bgr.shape[1]}x{bgr.shape[0]} disagrees with the header's "
+                                 f"{header.width}x{header.height}")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def common_size(sizes: list[tuple[int, int]]) -> tuple[int, int]:
+    """The (w, h) most images share; ties go to the earliest in camera order."""
+    counts = Counter(sizes)
+    best = max(counts.values())
+    return next(s for s in sizes if counts[s] == best)
+
+
+def stack_images(images: list[np.ndarray], intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Six RGB uint8 [H_i, W_i, 3] images and their intrinsics float32 [6, 3, 3] (each for its own size) →
+    (uint8 [6, H, W, 3], float32 [6, 3, 3]) at the common size, resized images' intrinsics scaled accordingly."""
+    sizes = [(im.shape[1], im.shape[0]) for im in images]
+    w, h = common_size(sizes)
+    out = np.empty((len(images), h, w, 3), np.uint8)
+    K = intrinsics.astype(np.float64).copy()
+    for i, (im, (wi, hi)) in enumerate(zip(images, sizes)):
+        if (wi, hi) == (w, h):
+            out[i] = im
+            continue
+        shrink = wi * hi > w * h
+        out[i] = cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+        K[i] = scale_intrinsics(K[i], w / wi, h / hi)
+    return out, K.astype(np.float32)

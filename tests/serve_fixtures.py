@@ -1,0 +1,175 @@
+"""Test helpers for serve/: a small fake model that follows ONNX contract v1 exactly, its numpy reference, images.
+
+The fake model's outputs depend on every input, so the tests can tell whether the server fed the right tensors:
+    m   = mean of all image bytes                       (per batch item)
+    u   = fx of CAM_FRONT / image width                 (scale-invariant: unchanged by consistent resizing)
+    tx  = x translation of CAM_FRONT's cam2ego
+    z   = ramp + 4 (m/255 - 0.5) + 8 (u - u0) + (tx - tx0),  ramp = P/4 - 2 with a fixed uint8 pattern P in [0, 16]
+    density   = sigmoid(z)                              float32 [B, 200, 200, 16]
+    occupancy = (floor(m) + P) mod 17 where density >= threshold else 17     uint8 [B, 200, 200, 16]
+u0 and tx0 come from the default calibration, so black images with it give density = sigmoid(ramp - 2).
+"""
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from occflownet import __version__
+from occflownet.config import CAMERAS, CLASS_COLORS, CLASS_NAMES, FREE, GRID
+from occflownet.rig import default_rig
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+FRAME_DIR = SHARED / "data" / "nuscenes-frame"
+DEFAULT_SIZE = (480, 270)  # (w, h) of the fake model's default calibration
+
+
+def fake_pattern(seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 17, size=GRID.shape, dtype=np.uint8)
+
+
+def fake_metadata(threshold: float = 0.5, default_size=DEFAULT_SIZE) -> dict:
+    """Contract-v1 metadata (values not yet JSON-encoded)."""
+    return {
+        "classes": list(CLASS_NAMES), "free_index": FREE, "grid": GRID.to_dict(), "cameras": list(CAMERAS),
+        "class_colors": CLASS_COLORS.tolist(), "threshold": threshold, "input_size": [128, 352], "preset": "fake",
+        "default_calibration": default_rig(*default_size), "occflownet_version": __version__, "onnx_contract": "v1",
+    }
+
+
+def build_fake_model(path: Path, threshold: float = 0.5, seed: int = 0, default_size=DEFAULT_SIZE,
+                     metadata: dict | None = None) -> Path:
+    """Write the fake contract-v1 model to ``path`` (about 0.7 MB); ``metadata`` overrides/extends the keys."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    calib = default_rig(*default_size)
+    front = calib["cameras"][CAMERAS[0]]
+    u0 = front["intrinsic"][0][0] / default_size[0]
+    tx0 = front["cam2ego"][0][3]
+    P = fake_pattern(seed)
+
+    def const(name, value):
+        return numpy_helper.from_array(np.asarray(value), name)
+
+    inits = [
+        const("P", P), const("quarter", np.float32(0.25)),
+        const("two", np.float32(2.0)), const("four", np.float32(4.0)), const("eight", np.float32(8.0)),
+        const("half", np.float32(0.5)), const("inv255", np.float32(1 / 255)), const("u0", np.float32(u0)),
+        const("tx0", np.float32(tx0)), const("tau", np.float32(threshold)), const("seventeen", np.int64(17)),
+        const("free", np.uint8(FREE)), const("axes123", np.array([1, 2, 3], np.int64)),
+        const("i0", np.array(0, np.int64)), const("i3", np.array(3, np.int64)),
+    ]
+    n = helper.make_node
+    nodes = [
+        n("Cast", ["images"], ["img_f"], to=TensorProto.FLOAT),
+        n("ReduceMean", ["img_f"], ["m"], axes=[1, 2, 3, 4], keepdims=0),           # [B]
+        n("Unsqueeze", ["m", "axes123"], ["m4"]),                                   # [B,1,1,1]
+        n("Shape", ["images"], ["shape"]),
+        n("Gather", ["shape", "i3"], ["w_i"], axis=0),
+        n("Cast", ["w_i"], ["w_f"], to=TensorProto.FLOAT),
+        n("Gather", ["intrinsics", "i0"], ["k_front"], axis=1),                     # [B,3,3]
+        n("Gather", ["k_front", "i0"], ["k_row0"], axis=1),                         # [B,3]
+        n("Gather", ["k_row0", "i0"], ["fx"], axis=1),                              # [B]
+        n("Div", ["fx", "w_f"], ["u"]),
+        n("Sub", ["u", "u0"], ["du"]),
+        n("Mul", ["du", "eight"], ["du8"]),
+        n("Gather", ["cam2ego", "i0"], ["t_front"], axis=1),                        # [B,4,4]
+        n("Gather", ["t_front", "i0"], ["t_row0"], axis=1),                         # [B,4]
+        n("Gather", ["t_row0", "i3"], ["tx"], axis=1),                              # [B]
+        n("Sub", ["tx", "tx0"], ["dtx"]),
+        n("Mul", ["m", "inv255"], ["m01"]),
+        n("Sub", ["m01", "half"], ["mc"]),
+        n("Mul", ["mc", "four"], ["m4c"]),
+        n("Add", ["m4c", "du8"], ["s1"]),
+        n("Add", ["s1", "dtx"], ["shift"]),                                         # [B]
+        n("Unsqueeze", ["shift", "axes123"], ["shift4"]),
+        n("Cast", ["P"], ["P_f"], to=TensorProto.FLOAT),
+        n("Mul", ["P_f", "quarter"], ["Pq"]),
+        n("Sub", ["Pq", "two"], ["ramp"]),                                          # [200,200,16]
+        n("Add", ["ramp", "shift4"], ["z"]),                                        # [B,200,200,16]
+        n("Sigmoid", ["z"], ["density"]),
+        n("Floor", ["m4"], ["m_floor"]),
+        n("Cast", ["m_floor"], ["m_int"], to=TensorProto.INT64),
+        n("Cast", ["P"], ["P64"], to=TensorProto.INT64),
+        n("Add", ["P64", "m_int"], ["sem_raw"]),
+        n("Mod", ["sem_raw", "seventeen"], ["sem64"]),
+        n("Cast", ["sem64"], ["sem"], to=TensorProto.UINT8),
+        n("GreaterOrEqual", ["density", "tau"], ["occupied"]),
+        n("Where", ["occupied", "sem", "free"], ["occupancy"]),
+    ]
+    X, Y, Z = GRID.shape
+    graph = helper.make_graph(
+        nodes, "occflownet_fake",
+        [helper.make_tensor_value_info("images", TensorProto.UINT8, ["B", 6, "H", "W", 3]),
+         helper.make_tensor_value_info("intrinsics", TensorProto.FLOAT, ["B", 6, 3, 3]),
+         helper.make_tensor_value_info("cam2ego", TensorProto.FLOAT, ["B", 6, 4, 4])],
+        [helper.make_tensor_value_info("occupancy", TensorProto.UINT8, ["B", X, Y, Z]),
+         helper.make_tensor_value_info("density", TensorProto.FLOAT, ["B", X, Y, Z])],
+        initializer=inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="occflownet-tests")
+    model.ir_version = 8
+    meta = fake_metadata(threshold, default_size) | (metadata or {})
+    helper.set_model_props(model, {k: json.dumps(v) for k, v in meta.items()})
+    onnx.checker.check_model(model)
+    path = Path(path)
+    onnx.save(model, str(path))
+    return path
+
+
+def fake_reference(images: np.ndarray, intrinsics: np.ndarray, cam2ego: np.ndarray, threshold: float = 0.5,
+                   seed: int = 0, default_size=DEFAULT_SIZE) -> np.ndarray:
+    """numpy twin of the fake model for one frame: images uint8 [6, H, W, 3], intrinsics [6, 3, 3] for H×W,
+    cam2ego [6, 4, 4] → occupancy uint8 [200, 200, 16]."""
+    calib = default_rig(*default_size)
+    front = calib["cameras"][CAMERAS[0]]
+    u0 = np.float32(front["intrinsic"][0][0] / default_size[0])
+    tx0 = np.float32(front["cam2ego"][0][3])
+    P = fake_pattern(seed)
+    m = np.float32(images.astype(np.float32).mean(dtype=np.float64))
+    u = np.float32(intrinsics[0, 0, 0]) / np.float32(images.shape[2])
+    shift = (m * np.float32(1 / 255) - np.float32(0.5)) * 4 + (u - u0) * 8 + (np.float32(cam2ego[0, 0, 3]) - tx0)
+    z = P.astype(np.float32) * np.float32(0.25) - 2 + np.float32(shift)
+    density = 1 / (1 + np.exp(-z.astype(np.float64)))
+    sem = ((P.astype(np.int64) + int(np.floor(m))) % 17).astype(np.uint8)
+    return np.where(density >= threshold, sem, FREE).astype(np.uint8)
+
+
+def synthetic_images(size=(96, 54), seed: int = 0) -> list[np.ndarray]:
+    """Six RGB uint8 [h, w, 3] images with smooth gradients plus noise (compress well, decode exactly as PNG)."""
+    w, h = size
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w]
+    out = []
+    for i in range(6):
+        base = np.stack([(xx * 255 // max(1, w - 1)), (yy * 255 // max(1, h - 1)), np.full_like(xx, 40 * i)], -1)
+        out.append(np.clip(base + rng.integers(0, 20, size=base.shape), 0, 255).astype(np.uint8))
+    return out
+
+
+def encode_image(rgb: np.ndarray, fmt: str = ".png", quality: int = 90) -> bytes:
+    params = [cv2.IMWRITE_JPEG_QUALITY, quality] if fmt == ".jpg" else []
+    ok, buf = cv2.imencode(fmt, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params)
+    assert ok
+    return buf.tobytes()
+
+
+def image_files(images: list[np.ndarray], fmt: str = ".png") -> dict:
+    """httpx/TestClient ``files=`` mapping: one part per camera, in camera order."""
+    mime = "image/png" if fmt == ".png" else "image/jpeg"
+    return {cam: (f"{cam}{fmt}", encode_image(im, fmt), mime) for cam, im in zip(CAMERAS, images)}
+
+
+def real_frame_files() -> tuple[dict, bytes]:
+    """The shared real frame as ``files=`` (six JPEGs) and its calib.json bytes."""
+    files = {cam: (f"{cam}.jpg", (FRAME_DIR / f"{cam}.jpg").read_bytes(), "image/jpeg") for cam in CAMERAS}
+    return files, (FRAME_DIR / "calib.json").read_bytes()
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array)
+    return buf.getvalue()

@@ -1,0 +1,101 @@
+"""`occflownet prepare` (index + class counts + flow hook) and the class-weight formula."""
+import json
+import sys
+import types
+
+import numpy as np
+import pytest
+from nuscenes_fixture import SCENES, write_fixture, visible_hits
+
+import occflownet.data
+from occflownet.cli import main
+from occflownet.config import NUM_CLASSES, map_lidarseg
+from occflownet.data.class_weights import ClassStats, class_weights
+from occflownet.data.index import index_dir, load_index
+
+
+def test_class_weights_formula():
+    counts = np.zeros(NUM_CLASSES, dtype=np.int64)
+    counts[[0, 4, 11]] = [100, 10, 890]
+    w = class_weights(counts)
+    raw = np.log(1000 / np.array([100, 10, 890]))
+    np.testing.assert_allclose(w[[0, 4, 11]], raw / raw.mean(), rtol=1e-6)
+    assert w[[0, 4, 11]].mean() == pytest.approx(1.0)
+    assert w[4] > w[0] > w[11] > 0  # rarer classes weigh more
+    assert (np.delete(w, [0, 4, 11]) == 0).all()  # absent classes: weight 0
+    one = np.zeros(NUM_CLASSES, dtype=np.int64)
+    one[3] = 7
+    assert class_weights(one)[3] == 1.0 and class_weights(one).sum() == 1.0
+    with pytest.raises(ValueError, match="no class"):
+        class_weights(np.zeros(NUM_CLASSES))
+    with pytest.raises(ValueError, match="17 non-negative"):
+        class_weights(np.ones(5))
+
+
+def _expected_counts(fx, scenes):
+    counts = np.zeros(NUM_CLASSES, dtype=np.int64)
+    for si, (name, n, _) in enumerate(SCENES):
+        if name in scenes:
+            for k in range(n):
+                _, raw = fx.points_global(si, k)
+                counts += np.bincount(map_lidarseg(raw)[visible_hits(fx, si, k) > 0], minlength=NUM_CLASSES)
+    return counts
+
+
+def test_prepare_writes_index_and_counts_and_is_idempotent(tmp_path, capsys):
+    fx = write_fixture(tmp_path / "root", write_images=False)
+    assert main(["prepare", "--dataroot", str(fx.root), "--quiet"]) == 0
+    out = capsys.readouterr()
+    assert "7 keyframes in 2 scenes" in out.out and "class counts over split 'all'" in out.out
+    index = load_index(fx.root)
+    stats = index.class_stats
+    assert stats.split == "all" and stats.num_samples == 7
+    np.testing.assert_array_equal(stats.counts, _expected_counts(fx, {"scene-a", "scene-b"}))
+    np.testing.assert_allclose(stats.weights, class_weights(stats.counts))
+    folder = index_dir(fx.root, fx.version)
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    assert set(before) == {"index.npz", "index.json"}
+
+    assert main(["prepare", "--dataroot", str(fx.root), "--version", fx.version, "--quiet"]) == 0
+    assert "class counts: up to date (split all), reused" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+
+    # a named training split: counted by default, recounted because the split changed
+    (fx.root / fx.version / "splits.json").write_text(json.dumps({"train": ["scene-a"], "val": ["scene-b"]}))
+    assert main(["prepare", "--dataroot", str(fx.root), "--quiet"]) == 0
+    stats = load_index(fx.root).class_stats
+    assert stats.split == "train" and stats.num_samples == 5
+    np.testing.assert_array_equal(stats.counts, _expected_counts(fx, {"scene-a"}))
+    assert main(["prepare", "--dataroot", str(fx.root), "--split", "val", "--quiet"]) == 0
+    assert load_index(fx.root).class_stats.split == "val"
+
+
+def test_prepare_errors(tmp_path, capsys):
+    fx = write_fixture(tmp_path / "root", write_images=False)
+    assert main(["prepare", "--dataroot", str(fx.root), "--split", "test", "--quiet"]) == 2
+    assert "unknown split 'test'; available: all" in capsys.readouterr().err
+    (fx.root / fx.version / "sample.json").unlink()
+    assert main(["prepare", "--dataroot", str(fx.root), "--version", fx.version]) == 1
+    assert "table 'sample' is missing" in capsys.readouterr().err
+    assert main(["prepare", "--dataroot", str(tmp_path / "nowhere")]) == 1
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_prepare_calls_the_flow_hook(tmp_path, monkeypatch):
+    calls = []
+    fake = types.ModuleType("occflownet.data.flow")
+    fake.precompute_flow = lambda index, dataroot, progress: calls.append((len(index), str(dataroot), progress))
+    monkeypatch.setitem(sys.modules, "occflownet.data.flow", fake)
+    monkeypatch.setattr(occflownet.data, "flow", fake, raising=False)
+    fx = write_fixture(tmp_path / "root", write_images=False)
+    assert main(["prepare", "--dataroot", str(fx.root), "--skip-class-counts", "--quiet"]) == 0
+    assert calls == [(7, str(fx.root), False)]
+    assert load_index(fx.root).class_stats is None
+
+
+def test_class_stats_round_trip():
+    stats = ClassStats("train", 3, np.arange(17), class_weights(np.arange(17)))
+    back = ClassStats.from_dict(json.loads(json.dumps(stats.to_dict())))
+    assert back.split == "train" and back.num_samples == 3
+    np.testing.assert_array_equal(back.counts, stats.counts)
+    np.testing.assert_allclose(back.weights, stats.weights)

@@ -1,0 +1,324 @@
+"""Unit tests of serve/ pieces: image headers, calibration, Accept negotiation, encoders, metrics, settings, limits."""
+import asyncio
+import io
+import json
+import struct
+
+import cv2
+import numpy as np
+import pytest
+from serve_fixtures import FRAME_DIR, encode_image, fake_metadata, synthetic_images
+
+from occflownet.config import CAMERAS, CLASS_COLORS, FREE
+from occflownet.rig import default_rig
+from serve.calibration import CalibrationError, calibration_for_sizes, parse_calibration, validate_calibration
+from serve.decode import ImageError, check_header, common_size, decode_image, image_header, stack_images
+from serve.encode import NotAcceptable, encode, negotiate, top_down_rgb
+from serve.limits import BodySizeLimitMiddleware, InferenceGate, Saturated
+from serve.metrics import Metrics
+from serve.model_runtime import ModelLoadError, parse_metadata
+from serve.settings import ServeSettings
+
+RGB = synthetic_images((64, 36))[0]
+
+
+# ---------------------------------------------------------------- image headers and decoding
+
+@pytest.mark.parametrize("progressive", [0, 1])
+def test_jpeg_header_size_baseline_and_progressive(progressive):
+    ok, buf = cv2.imencode(".jpg", RGB, [cv2.IMWRITE_JPEG_PROGRESSIVE, progressive])
+    h = image_header(buf.tobytes())
+    assert (h.format, h.width, h.height) == ("jpeg", 64, 36)
+
+
+def test_jpeg_header_skips_exif_thumbnail():
+    main = encode_image(RGB, ".jpg")
+    thumb = encode_image(np.zeros((8, 16, 3), np.uint8), ".jpg")   # its own SOF (16x8) and EOI inside APP1
+    payload = b"Exif\x00\x00" + thumb
+    app1 = b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
+    data = main[:2] + app1 + main[2:]
+    h = image_header(data)
+    assert (h.width, h.height) == (64, 36)
+    assert decode_image("CAM_FRONT", data, 10**6).shape == (36, 64, 3)
+    # cut inside the scan data: the thumbnail's EOI (before the scan) must not count as the end marker
+    with pytest.raises(ImageError, match="CAM_FRONT: truncated JPEG"):
+        decode_image("CAM_FRONT", data[:len(data) - 200], 10**6)
+
+
+def test_png_header_and_exact_decode():
+    data = encode_image(RGB, ".png")
+    h = image_header(data)
+    assert (h.format, h.width, h.height) == ("png", 64, 36)
+    np.testing.assert_array_equal(decode_image("CAM_BACK", data, 10**6), RGB)  # RGB order preserved
+
+
+def test_real_frame_headers_match_decode():
+    if not FRAME_DIR.is_dir():
+        pytest.skip(f"shared real frame not found at {FRAME_DIR}")
+    data = (FRAME_DIR / "CAM_FRONT.jpg").read_bytes()
+    h = image_header(data)
+    assert (h.width, h.height) == (1600, 900)
+    assert decode_image("CAM_FRONT", data, 1600 * 900).shape == (900, 1600, 3)
+
+
+@pytest.mark.parametrize("data, message", [
+    (b"", "empty"),
+    (b"GIF89a....", "not a JPEG or PNG"),
+    (b"\xff\xd8\xff\xe0\x00", "truncated JPEG"),
+    (b"\x89PNG\r\n\x1a\n\x00\x00", "truncated PNG"),
+])
+def test_bad_image_bytes_name_the_camera(data, message):
+    with pytest.raises(ImageError, match=f"CAM_BACK_LEFT: .*{message}") as info:
+        decode_image("CAM_BACK_LEFT", data, 10**6)
+    assert info.value.status == 400
+
+
+def test_truncated_png_is_refused():
+    data = encode_image(RGB, ".png")
+    with pytest.raises(ImageError, match="truncated PNG"):
+        decode_image("CAM_FRONT", data[: len(data) // 2], 10**6)
+
+
+def test_pixel_limit_is_checked_from_the_header_before_decoding(monkeypatch):
+    data = bytearray(encode_image(RGB, ".png"))
+    data[16:24] = struct.pack(">II", 20000, 20000)   # header claims 400 MP; the data is 64x36
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: pytest.fail("decoder called for an over-limit image"))
+    with pytest.raises(ImageError, match="CAM_FRONT: image is 20000x20000") as info:
+        check_header("CAM_FRONT", bytes(data), 4096 * 4096)
+    assert info.value.status == 413
+    with pytest.raises(ImageError):
+        decode_image("CAM_FRONT", bytes(data), 4096 * 4096)
+
+
+def test_common_size_and_stack_scales_intrinsics():
+    assert common_size([(2, 1), (4, 2), (4, 2), (2, 1)]) == (2, 1)  # tie → earlier camera
+    assert common_size([(2, 1), (4, 2), (4, 2)]) == (4, 2)
+    small = synthetic_images((96, 54))
+    big = cv2.resize(small[0], (192, 108), interpolation=cv2.INTER_LINEAR)
+    K = np.tile(np.array([[100.0, 0, 48], [0, 100.0, 27], [0, 0, 1]], np.float32), (6, 1, 1))
+    K[0] *= np.array([[2], [2], [1]], np.float32)   # CAM_FRONT's intrinsics are for its 192x108 image
+    images, K2 = stack_images([big] + small[1:], K)
+    assert images.shape == (6, 54, 96, 3)
+    np.testing.assert_allclose(K2[0], K[1])          # halved back to the 96x54 intrinsics
+    np.testing.assert_array_equal(images[1:], np.stack(small[1:]))
+
+
+# ---------------------------------------------------------------- calibration
+
+def _calib():
+    return default_rig(480, 270)
+
+
+class _Meta:
+    cameras = CAMERAS
+    default_calibration = default_rig(480, 270)
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda c: c["cameras"]["CAM_FRONT"].update(intrinsic=[[1, 0], [0, 1]]), "CAM_FRONT intrinsic must be 3x3"),
+    (lambda c: c["cameras"]["CAM_BACK"].update(cam2ego=np.eye(3).tolist()), "CAM_BACK cam2ego must be 4x4"),
+    (lambda c: c["cameras"]["CAM_BACK"]["intrinsic"][0].__setitem__(0, float("nan")), "CAM_BACK intrinsic .*NaN"),
+    (lambda c: c["cameras"]["CAM_FRONT"]["cam2ego"][0].__setitem__(3, float("inf")), "CAM_FRONT cam2ego .*inf"),
+    (lambda c: c["cameras"]["CAM_FRONT_LEFT"].update(intrinsic=np.zeros((3, 3)).tolist()), "singular"),
+    (lambda c: c["cameras"]["CAM_FRONT_LEFT"]["intrinsic"][0].__setitem__(0, 0.0), "CAM_FRONT_LEFT .*singular"),
+    (lambda c: c["cameras"].pop("CAM_BACK_RIGHT"), "lacks camera CAM_BACK_RIGHT"),
+    (lambda c: c["cameras"]["CAM_FRONT"].pop("cam2ego"), "CAM_FRONT lacks 'cam2ego'"),
+    (lambda c: c["cameras"]["CAM_FRONT"].update(intrinsic="abc"), "CAM_FRONT intrinsic"),
+    (lambda c: c["cameras"]["CAM_FRONT"]["cam2ego"][0].__setitem__(0, 2.0), "not a proper rotation"),
+    (lambda c: c.pop("cameras"), "no 'cameras'"),
+])
+def test_bad_calibrations_are_named(mutate, message):
+    calib = _calib()
+    mutate(calib)
+    with pytest.raises(CalibrationError, match=message):
+        validate_calibration(calib, CAMERAS)
+
+
+def test_parse_calibration_rejects_non_json():
+    with pytest.raises(CalibrationError, match="not valid UTF-8 JSON"):
+        parse_calibration(b"{nope")
+    with pytest.raises(CalibrationError, match="JSON object"):
+        parse_calibration(b"[1, 2]")
+
+
+def test_default_calibration_scaled_for_same_aspect_and_refused_otherwise():
+    K, T = calibration_for_sizes(None, _Meta, [(960, 540)] * 6)
+    K480 = np.array(_calib()["cameras"]["CAM_FRONT"]["intrinsic"])
+    np.testing.assert_allclose(K[0], np.diag([2, 2, 1]) @ K480, rtol=1e-6)
+    assert T.dtype == np.float32 and T.shape == (6, 4, 4)
+    with pytest.raises(CalibrationError, match="CAM_FRONT: image is 500x500 .*send a 'calibration' part"):
+        calibration_for_sizes(None, _Meta, [(500, 500)] * 6)
+
+
+def test_request_calibration_without_size_is_taken_as_is():
+    calib = _calib()
+    calib.pop("image_size")
+    K, _ = calibration_for_sizes(calib, _Meta, [(123, 77)] * 6)
+    np.testing.assert_allclose(K[0], np.array(calib["cameras"]["CAM_FRONT"]["intrinsic"]), rtol=1e-6)
+
+
+def test_per_camera_image_size_overrides_top_level():
+    calib = _calib()
+    calib["cameras"]["CAM_BACK"]["image_size"] = [960, 540]
+    calib["cameras"]["CAM_BACK"]["intrinsic"] = default_rig(960, 540)["cameras"]["CAM_BACK"]["intrinsic"]
+    K, _ = calibration_for_sizes(calib, _Meta, [(480, 270)] * 6)
+    np.testing.assert_allclose(K[3], np.array(_calib()["cameras"]["CAM_BACK"]["intrinsic"]), rtol=1e-6)
+
+
+# ---------------------------------------------------------------- Accept negotiation and encoders
+
+@pytest.mark.parametrize("accept, expected", [
+    (None, "application/json"), ("", "application/json"), ("*/*", "application/json"),
+    ("application/octet-stream", "application/octet-stream"), ("image/*", "image/png"),
+    ("image/png;q=0.5, application/x-npy", "application/x-npy"),
+    ("text/html, */*;q=0.1", "application/json"), ("application/x-npy;q=0, image/png", "image/png"),
+    ("APPLICATION/JSON", "application/json"),
+])
+def test_negotiate(accept, expected):
+    assert negotiate(accept) == expected
+
+
+@pytest.mark.parametrize("accept", ["text/html", "application/xml", "image/jpeg", "application/json;q=0"])
+def test_negotiate_refuses(accept):
+    with pytest.raises(NotAcceptable):
+        negotiate(accept)
+
+
+class _MD:
+    classes = tuple(fake_metadata()["classes"])
+    free_index = FREE
+    grid = fake_metadata()["grid"]
+    class_colors = CLASS_COLORS
+    preset = "fake"
+    occflownet_version = "0"
+
+
+def test_all_encoders_carry_the_same_grid():
+    import base64
+
+    grid = np.random.default_rng(3).integers(0, 18, (200, 200, 16), dtype=np.uint8)
+    body, _ = encode("application/json", grid, _MD, {"decode": 1.0})
+    j = json.loads(body)
+    assert j["shape"] == [200, 200, 16] and j["free_index"] == 17 and sum(j["class_counts"].values()) == grid.size
+    np.testing.assert_array_equal(np.frombuffer(base64.b64decode(j["occupancy_base64"]), np.uint8).reshape(j["shape"]),
+                                  grid)
+    raw, headers = encode("application/octet-stream", grid, _MD, {})
+    assert len(raw) == 640_000 and headers["X-Occupancy-Shape"] == "200,200,16"
+    np.testing.assert_array_equal(np.frombuffer(raw, np.uint8).reshape(200, 200, 16), grid)
+    npy, _ = encode("application/x-npy", grid, _MD, {})
+    np.testing.assert_array_equal(np.load(io.BytesIO(npy)), grid)
+    png, _ = encode("image/png", grid, _MD, {})
+    picture = cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(picture, top_down_rgb(grid, CLASS_COLORS, FREE))
+
+
+def test_top_down_orientation_and_highest_voxel():
+    grid = np.full((200, 200, 16), FREE, np.uint8)
+    grid[199, 199, 0] = 4           # car at +x (front), +y (left) corner, on the ground
+    grid[199, 199, 5] = 15          # manmade above it: the top-most wins
+    grid[0, 0, 3] = 7               # pedestrian at the rear right corner
+    rgb = top_down_rgb(grid, CLASS_COLORS, FREE)
+    assert rgb.shape == (400, 400, 3)
+    np.testing.assert_array_equal(rgb[0, 0], CLASS_COLORS[15])       # image top-left = front-left
+    np.testing.assert_array_equal(rgb[-1, -1], CLASS_COLORS[7])      # image bottom-right = rear-right
+    np.testing.assert_array_equal(rgb[100, 300], CLASS_COLORS[FREE])
+    np.testing.assert_array_equal(rgb[200, 200], [0, 0, 0])          # ego marker
+
+
+# ---------------------------------------------------------------- metrics, settings, metadata
+
+def test_metrics_exposition_counts_and_histograms():
+    m = Metrics()
+    m.request_started()
+    m.request_finished("/v1/occupancy", "POST", 200, 0.07)
+    m.observe_stage("inference", 0.05)
+    m.observe_stage("inference", 2.0)
+    text = m.render()
+    assert 'occflownet_http_requests_total{route="/v1/occupancy",method="POST",status="200"} 1' in text
+    assert 'occflownet_stage_duration_seconds_bucket{stage="inference",le="0.05"} 1' in text
+    assert 'occflownet_stage_duration_seconds_bucket{stage="inference",le="2.5"} 2' in text
+    assert 'occflownet_stage_duration_seconds_count{stage="inference"} 2' in text
+    assert "occflownet_http_requests_in_flight 0" in text
+    for line in text.splitlines():  # every sample line is "name{labels} number"
+        if not line.startswith("#"):
+            float(line.rsplit(" ", 1)[1])
+
+
+def test_settings_from_env_and_resolution():
+    s = ServeSettings.from_env({"OCCFLOWNET_MODEL": "m.onnx", "OCCFLOWNET_MAX_QUEUE": "7", "OCCFLOWNET_WARMUP": "0",
+                                "OCCFLOWNET_INTRA_OP_THREADS": "1", "OCCFLOWNET_PROVIDERS": "A, B"})
+    assert (s.model_path, s.max_queue, s.warmup, s.providers) == ("m.onnx", 7, False, ["A", "B"])
+    r = s.resolved()
+    assert r.intra_op_threads == 1 and r.max_inflight >= 1
+    assert ServeSettings.from_env(r.to_env()).resolved() == r
+    with pytest.raises(ValueError, match="OCCFLOWNET_MAX_QUEUE"):
+        ServeSettings.from_env({"OCCFLOWNET_MAX_QUEUE": "many"})
+    with pytest.raises(ValueError, match="max_inflight"):
+        ServeSettings(max_inflight=-1).resolved()
+
+
+def test_metadata_parsing_errors_name_the_file():
+    props = {k: json.dumps(v) for k, v in fake_metadata().items()}
+    md = parse_metadata(props, "m.onnx")
+    assert md.grid_shape == (200, 200, 16) and md.cameras == CAMERAS and md.class_colors.shape == (18, 3)
+    for broken, message in ((props | {"onnx_contract": '"v2"'}, "speaks 'v1'"),
+                            ({k: v for k, v in props.items() if k != "cameras"}, "lacks cameras"),
+                            (props | {"class_colors": "[[1, 2, 3]]"}, "class_colors")):
+        with pytest.raises(ModelLoadError, match=f"m.onnx: .*{message}"):
+            parse_metadata(broken, "m.onnx")
+
+
+# ---------------------------------------------------------------- limits
+
+def _run_middleware(limit, chunks, content_length=None):
+    """Drive BodySizeLimitMiddleware with an app that reads the whole body; → (status, chunks consumed)."""
+    consumed = 0
+    sent = []
+
+    async def app(scope, receive, send):
+        while True:
+            message = await receive()
+            if not message.get("more_body"):
+                break
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"ok"})
+
+    async def receive():
+        nonlocal consumed
+        consumed += 1
+        return {"type": "http.request", "body": chunks[consumed - 1], "more_body": consumed < len(chunks)}
+
+    async def send(message):
+        sent.append(message)
+
+    headers = [] if content_length is None else [(b"content-length", str(content_length).encode())]
+    scope = {"type": "http", "method": "POST", "path": "/v1/occupancy", "headers": headers}
+    asyncio.run(BodySizeLimitMiddleware(app, limit)(scope, receive, send))
+    return sent[0]["status"], consumed
+
+
+def test_body_limit_declared_length_refused_without_reading():
+    status, consumed = _run_middleware(1000, [b"x" * 100] * 50, content_length=5000)
+    assert (status, consumed) == (413, 0)
+
+
+def test_body_limit_streamed_body_stops_at_the_limit():
+    status, consumed = _run_middleware(1000, [b"x" * 100] * 50)
+    assert status == 413 and consumed == 11      # the 11th chunk passes 1000 bytes; the other 39 are never read
+    assert _run_middleware(1000, [b"x" * 100] * 10) == (200, 10)
+
+
+def test_gate_admission_and_retry_after():
+    async def scenario():
+        gate = InferenceGate(max_inflight=1, max_queue=1)
+        gate.admit()
+        gate.admit()
+        with pytest.raises(Saturated) as info:
+            gate.admit()
+        assert info.value.retry_after == 1          # nothing measured yet
+        result, queue_s, run_s = await gate.run(lambda x: x * 2, 21)
+        assert result == 42 and gate.running == 0
+        gate.leave()
+        gate.admit()                                 # room again
+        gate.shutdown()
+    asyncio.run(scenario())
