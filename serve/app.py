@@ -6,8 +6,8 @@ the warm-up inference), ``GET /v1/metadata``, ``GET /metrics`` (Prometheus text)
 
 Request pipeline of ``POST /v1/occupancy`` (CPU work never on the event loop):
 Accept → 406 | not warmed up → 503 | queue full → 503 + Retry-After | stream multipart parts (422/413/415) |
-read image headers, check pixel limits (413) | calibration (400) | decode six images in threads (400) |
-common size | wait for an inference slot, run ORT on its thread | encode in a thread.
+read image headers, check pixel limits (413) | calibration (400) | wait for a CPU slot | decode the six images in
+threads (400) | common size | run ORT on the inference thread | encode in a thread | release the slot.
 """
 from __future__ import annotations
 
@@ -31,6 +31,7 @@ from serve.encode import FORMATS, NotAcceptable, encode, negotiate
 from serve.errors import CODES, ApiError, error_response
 from serve.form import read_parts
 from serve.limits import BodySizeLimitMiddleware, InferenceGate, Saturated
+from serve.malloc import cap_malloc_arenas
 from serve.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
 from serve.metrics import Metrics
 from serve.middleware import ApiKeyMiddleware, MetricsMiddleware
@@ -53,6 +54,7 @@ def create_app(settings: ServeSettings | None = None, runtime: ModelRuntime | No
     """The app. ``settings`` None reads ``OCCFLOWNET_*`` from the environment (uvicorn ``--factory`` workers);
     ``runtime`` lets a caller pass a model it has already loaded (the CLI with one worker, tests)."""
     settings = (settings or ServeSettings.from_env()).resolved()
+    cap_malloc_arenas()
     metrics = Metrics()
 
     @asynccontextmanager
@@ -198,34 +200,38 @@ async def _occupancy(request: Request, ctx: ServingContext, media_type: str) -> 
     if missing:
         raise ApiError(422, "missing_part", f"missing image part(s) {', '.join(missing)}; the request needs one "
                        f"part per camera: {', '.join(md.cameras)} (and optionally 'calibration')")
-    t0 = time.perf_counter()
     try:
-        # header-only checks first: no pixel is decoded for a request refused here
+        # header-only checks and the calibration first: nothing is decoded, and no slot awaited, for a request
+        # refused here
         image_headers = [check_header(cam, parts[cam].data, settings.max_image_pixels) for cam in md.cameras]
         sizes = [(h.width, h.height) for h in image_headers]
         calib = parse_calibration(parts["calibration"].data) if "calibration" in parts else None
         K, T = calibration_for_sizes(calib, md, sizes)
-        images = await asyncio.gather(*(run_in_threadpool(decode_image, cam, parts[cam].data,
-                                                          settings.max_image_pixels) for cam in md.cameras))
-        del parts
-        images, K = await run_in_threadpool(stack_images, list(images), K)
     except ImageError as exc:
         raise ApiError(exc.status, "bad_image" if exc.status == 400 else "image_too_large", str(exc)) from None
     except CalibrationError as exc:
         raise ApiError(400, "bad_calibration", str(exc)) from None
-    decode_s = time.perf_counter() - t0
-    ctx.metrics.observe_stage("decode", decode_s)
 
-    occupancy, queue_s, infer_s = await ctx.gate.run(ctx.runtime.infer, images, K, T)
-    ctx.metrics.observe_stage("queue", queue_s)
-    ctx.metrics.observe_stage("inference", infer_s)
-
-    timings = {"decode": round(decode_s * 1e3, 3), "queue": round(queue_s * 1e3, 3),
-               "inference": round(infer_s * 1e3, 3)}
-    t1 = time.perf_counter()
-    body, headers = await run_in_threadpool(encode, media_type, occupancy, md, timings)
-    encode_s = time.perf_counter() - t1
-    ctx.metrics.observe_stage("encode", encode_s)
-    timings["encode"] = round(encode_s * 1e3, 3)
-    headers["Server-Timing"] = ", ".join(f"{k};dur={timings[k]}" for k in ("decode", "queue", "inference", "encode"))
+    t_queue = time.perf_counter()
+    async with ctx.gate.slot() as slot:
+        t_decode = time.perf_counter()
+        try:
+            images = await asyncio.gather(*(run_in_threadpool(decode_image, cam, parts[cam].data,
+                                                              settings.max_image_pixels) for cam in md.cameras))
+        except ImageError as exc:
+            raise ApiError(exc.status, "bad_image", str(exc)) from None
+        del parts
+        images, K = await run_in_threadpool(stack_images, list(images), K)
+        t_infer = time.perf_counter()
+        occupancy = await ctx.gate.infer(slot, ctx.runtime.infer, images, K, T)
+        t_encode = time.perf_counter()
+        timings = {"queue": round((t_decode - t_queue) * 1e3, 3), "decode": round((t_infer - t_decode) * 1e3, 3),
+                   "inference": round((t_encode - t_infer) * 1e3, 3)}
+        body, headers = await run_in_threadpool(encode, media_type, occupancy, md, timings)
+        t_end = time.perf_counter()
+    for stage, seconds in (("queue", t_decode - t_queue), ("decode", t_infer - t_decode),
+                           ("inference", t_encode - t_infer), ("encode", t_end - t_encode)):
+        ctx.metrics.observe_stage(stage, seconds)
+    timings["encode"] = round((t_end - t_encode) * 1e3, 3)
+    headers["Server-Timing"] = ", ".join(f"{k};dur={timings[k]}" for k in ("queue", "decode", "inference", "encode"))
     return Response(body, media_type=media_type, headers=headers)

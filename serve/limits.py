@@ -4,8 +4,8 @@ Body size: a request whose ``Content-Length`` exceeds the limit is answered 413 
 read (a client that sent ``Expect: 100-continue`` never uploads it); a body without a length (chunked) is counted
 as it streams and the request fails with 413 as soon as the count passes the limit. Nothing is buffered here.
 
-Inference gate: at most ``max_inflight`` inferences run at once, each on a dedicated thread (CPU-bound work stays
-off the event loop); at most ``max_queue`` more requests are admitted and wait (reading their body, decoding,
+Inference gate: at most ``max_inflight`` requests do CPU work (decode, inference on a dedicated thread, encode) at
+once, all of it off the event loop; at most ``max_queue`` more requests are admitted and wait (reading their body,
 waiting for a slot). Beyond that a request is refused at once with 503 and a ``Retry-After`` estimated from the
 recent inference time and the queue length.
 """
@@ -15,6 +15,7 @@ import asyncio
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import asynccontextmanager
 
 from serve.errors import error_response
 
@@ -85,11 +86,28 @@ class Saturated(Exception):
         self.retry_after = retry_after
 
 
-class InferenceGate:
-    """Admission (bounded queue) and a bounded number of concurrent inferences on dedicated threads.
+class _Slot:
+    """One held CPU slot; ``pending`` is the inference future still running on its thread, if any."""
 
-    Use from the event loop only: ``admit()`` (raises Saturated) before any work, ``leave()`` when the request
-    is done, ``await run(fn, *args)`` for the inference itself.
+    def __init__(self):
+        self.pending: asyncio.Future | None = None
+
+
+class InferenceGate:
+    """Admission (bounded queue) and a bounded number of requests doing CPU work at once.
+
+    A slot covers all of a request's CPU-heavy work (decoding its six images, the inference on a dedicated thread,
+    encoding the answer): with ``max_inflight`` = cores // intra-op threads, one request per core group computes
+    at a time, so decode threads never compete with onnxruntime's threads (oversubscription cost 35 % throughput
+    in docs/serve.md's measurements). Use from the event loop only::
+
+        gate.admit()                      # raises Saturated when running + waiting would pass the capacity
+        try:
+            async with gate.slot() as slot:
+                ...decode in threads...
+                result = await gate.infer(slot, fn, *args)
+        finally:
+            gate.leave()
     """
 
     def __init__(self, max_inflight: int, max_queue: int, on_change=None):
@@ -106,7 +124,7 @@ class InferenceGate:
         self._on_change(self.admitted - self.running, self.running)
 
     def retry_after(self) -> int:
-        """Seconds until a slot is likely free: mean inference time × (waiting + 1) / slots, in [1, 60]."""
+        """Seconds until a slot is likely free: mean slot time × (waiting + 1) / slots, in [1, 60]."""
         if self._mean_s is None:
             return 1
         waiting = max(0, self.admitted - self.running) + 1
@@ -122,27 +140,29 @@ class InferenceGate:
         self.admitted -= 1
         self._changed()
 
-    async def run(self, fn, *args):
-        """Run ``fn(*args)`` on an inference thread once a slot is free → (result, queue seconds, run seconds).
-
-        The slot is released when the thread finishes, even if the awaiting request is cancelled meanwhile, so
-        no more than ``max_inflight`` inferences ever run at once."""
-        t0 = time.perf_counter()
+    @asynccontextmanager
+    async def slot(self):
+        """Hold one CPU slot. If the holder is cancelled while its inference thread still runs, the slot is
+        released only when that thread finishes, so no more than ``max_inflight`` inferences ever run at once."""
         await self._slots.acquire()
-        t1 = time.perf_counter()
+        t0 = time.perf_counter()
         self.running += 1
         self._changed()
-        loop = asyncio.get_running_loop()
+        held = _Slot()
         try:
-            inner = loop.run_in_executor(self._executor, fn, *args)
-        except BaseException:
-            self._release(None)
-            raise
-        inner.add_done_callback(self._release)
-        result = await asyncio.shield(inner)
-        run_s = time.perf_counter() - t1
-        self._mean_s = run_s if self._mean_s is None else 0.8 * self._mean_s + 0.2 * run_s
-        return result, t1 - t0, run_s
+            yield held
+        finally:
+            seconds = time.perf_counter() - t0
+            self._mean_s = seconds if self._mean_s is None else 0.8 * self._mean_s + 0.2 * seconds
+            if held.pending is not None and not held.pending.done():
+                held.pending.add_done_callback(self._release)
+            else:
+                self._release(None)
+
+    async def infer(self, held: _Slot, fn, *args):
+        """Run ``fn(*args)`` on an inference thread, inside a held slot."""
+        held.pending = asyncio.get_running_loop().run_in_executor(self._executor, fn, *args)
+        return await asyncio.shield(held.pending)
 
     def _release(self, _future) -> None:
         self.running -= 1

@@ -110,12 +110,6 @@ class Fixture:
     static: np.ndarray = None                           # [P, 3] global
     static_raw: np.ndarray = None                       # [P]
 
-    def scene_of(self, sample_token: str) -> tuple[int, int]:
-        for i, (name, _, _) in enumerate(SCENES):
-            if sample_token in self.sample_tokens[name]:
-                return i, self.sample_tokens[name].index(sample_token)
-        raise KeyError(sample_token)
-
     def lidar_time(self, scene: int, k: int) -> int:
         return SCENES[scene][2] + k * KEYFRAME_US
 

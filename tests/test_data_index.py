@@ -176,7 +176,14 @@ def test_save_load_round_trip_and_stale_index(tables_root):
     np.testing.assert_array_equal(a.boxes.translations, b.boxes.translations)
     meta = json.loads((index_dir(fx.root, fx.version) / "index.json").read_text())
     assert meta["format_version"] == FORMAT_VERSION and meta["num_samples"] == 7 and "package_version" in meta
-    # a regenerated root (tables changed) is detected
+    # a regenerated root (tables changed, added or removed) is detected
+    seg = fx.root / fx.version / "lidarseg.json"
+    seg_text = seg.read_text()
+    seg.unlink()
+    with pytest.raises(DatasetError, match="lidarseg.json changed since the index was written"):
+        load_index(fx.root, fx.version)
+    seg.write_text(seg_text)
+    assert len(load_index(fx.root, fx.version)) == 7
     _edit_table(fx, "category", lambda rs: rs + [{"token": "x", "name": "new", "description": "", "index": 9}])
     with pytest.raises(DatasetError, match="category.json changed since the index was written"):
         load_index(fx.root, fx.version)

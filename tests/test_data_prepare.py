@@ -53,12 +53,11 @@ def test_prepare_writes_index_and_counts_and_is_idempotent(tmp_path, capsys):
     np.testing.assert_array_equal(stats.counts, _expected_counts(fx, {"scene-a", "scene-b"}))
     np.testing.assert_allclose(stats.weights, class_weights(stats.counts))
     folder = index_dir(fx.root, fx.version)
-    before = {p.name: p.read_bytes() for p in folder.iterdir()}
-    assert set(before) == {"index.npz", "index.json"}
+    before = {name: (folder / name).read_bytes() for name in ("index.npz", "index.json")}
 
     assert main(["prepare", "--dataroot", str(fx.root), "--version", fx.version, "--quiet"]) == 0
     assert "class counts: up to date (split all), reused" in capsys.readouterr().err
-    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    assert {name: (folder / name).read_bytes() for name in before} == before
 
     # a named training split: counted by default, recounted because the split changed
     (fx.root / fx.version / "splits.json").write_text(json.dumps({"train": ["scene-a"], "val": ["scene-b"]}))

@@ -104,12 +104,12 @@ def test_idw_round_trip_error_is_bounded():
     assert torch.allclose(d_b[inner], torch.tensor(0.7), atol=1e-5)
     # edges are blurred by the two splats; bound the damage
     err = (d_b - density).abs()
-    assert err.max() <= 0.7 and err[block].mean() < 0.25
+    assert err.max() <= 0.6 and err[block].mean() < 0.2
     assert d_b.min() >= 0 and d_b.max() <= 0.7 + 1e-6  # convex combinations only: σ stays in range
-    assert abs(float(d_b.sum() - density.sum())) / float(density.sum()) < 0.25
+    assert abs(float(d_b.sum() - density.sum())) / float(density.sum()) < 0.05
     # occupancy (σ > 0.5) after the round trip lies within the original block, and keeps most of it
     back, orig = _occupied(d_b), _occupied(density)
-    assert back <= orig and len(back) > 0.5 * len(orig)
+    assert back <= orig and len(back) > 0.55 * len(orig)
 
 
 def test_only_voxels_of_the_box_class_move_and_sources_are_cleared():

@@ -78,6 +78,7 @@ def post_ok(base: str, **kw) -> np.ndarray:
 def test_saturation_gives_503_with_retry_after_then_recovers(model_path):
     settings = ServeSettings(model_path=str(model_path), max_inflight=1, max_queue=1)
     runtime = ModelRuntime.load(model_path, settings)
+    runtime.warm_up()                                                       # before infer is made to block
     gate_open = threading.Event()
     real_infer = runtime.infer
     runtime.infer = lambda *a: (gate_open.wait(20), real_infer(*a))[1]      # an inference that waits to be let go
@@ -149,7 +150,7 @@ def test_body_limit_on_the_wire(model_path):
         chunks = [b"%x\r\n%s\r\n" % (len(part), part)] + [b"10000\r\n" + b"\0" * 0x10000 + b"\r\n"] * 320
         response, sent = _raw_exchange(port, head + b"Transfer-Encoding: chunked\r\n\r\n", chunks, 0.002)
         assert response.startswith(b"HTTP/1.1 413"), response[:200]
-        assert sent < 10 * limit, f"server let {sent} bytes through before refusing"
+        assert sent < 3 * limit, f"server let {sent} bytes through before refusing"
         post_ok(base)                                                       # still serving
 
 

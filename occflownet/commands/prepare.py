@@ -34,6 +34,7 @@ def run(args) -> int:
     from occflownet.data.rays import RayBuilder, RayConfig
     from occflownet.data.tables import DatasetError
 
+    print(f"reading the tables under {args.dataroot} ...", file=sys.stderr)
     try:
         index = build_index(args.dataroot, args.version, verify_files=args.verify_files)
     except DatasetError as e:

@@ -58,6 +58,9 @@ def run(args) -> int:
         print("occflownet serve: no model given: pass --model FILE or set OCCFLOWNET_MODEL", file=sys.stderr)
         return 2
 
+    from serve.malloc import cap_malloc_arenas
+
+    cap_malloc_arenas()  # before onnxruntime and uvicorn start their threads
     import uvicorn
 
     from serve.app import create_app

@@ -106,8 +106,11 @@ def _check_boxes(boxes: Mapping, where: str) -> dict[str, np.ndarray]:
     missing = [k for k in _BOX_KEYS if k not in boxes]
     if missing:
         raise ValueError(f"{where}: box arrays miss {missing} (need {list(_BOX_KEYS)})")
+    label = np.asarray(boxes["label"]).reshape(-1)
+    if label.size and label.dtype.kind not in "iu":
+        raise ValueError(f"{where}: 'label' must hold integer Occ3D classes, got dtype {label.dtype}")
     out = {"instance_token": np.asarray(boxes["instance_token"], dtype=str).reshape(-1),
-           "label": np.asarray(boxes["label"]).reshape(-1).astype(np.int64),
+           "label": label.astype(np.int64),
            "center": np.asarray(boxes["center"], np.float64).reshape(-1, 3),
            "size_wlh": np.asarray(boxes["size_wlh"], np.float64).reshape(-1, 3),
            "rotation": np.asarray(boxes["rotation"], np.float64).reshape(-1, 4)}
@@ -127,7 +130,8 @@ def _check_boxes(boxes: Mapping, where: str) -> dict[str, np.ndarray]:
 def box_poses(boxes: Mapping) -> np.ndarray:
     """Box → global poses float64 [N, 4, 4] from the box arrays (centre, quaternion (w, x, y, z))."""
     b = _check_boxes(boxes, "box_poses")
-    return np.stack([make_transform(q, c) for q, c in zip(b["rotation"], b["center"])]).reshape(-1, 4, 4)
+    poses = [make_transform(q, c) for q, c in zip(b["rotation"], b["center"])]
+    return np.stack(poses) if poses else np.zeros((0, 4, 4))
 
 
 def box_flows(sample_token: str, boxes_now: Mapping, boxes_at: Mapping[int, Mapping], ego2global_now,
@@ -179,6 +183,22 @@ def box_flows(sample_token: str, boxes_now: Mapping, boxes_at: Mapping[int, Mapp
         move_box=[row[i] for _, i, _ in moves],
         transform=np.stack([m for _, _, m in moves]),
     )
+
+
+def box_arrays(boxes) -> dict[str, np.ndarray]:
+    """The sample index's global-frame ``Boxes`` (``occflownet.data.records``) → box arrays for ``box_flows``."""
+    return {"instance_token": boxes.instance_tokens, "label": boxes.labels, "center": boxes.translations,
+            "size_wlh": boxes.sizes, "rotation": boxes.rotations}
+
+
+def keyframe_flow(index, position: int, horizon: int = 3,
+                  dynamic_classes: Sequence[int] = DYNAMIC_CLASSES, grid: Grid = GRID) -> FlowRecord:
+    """Flow record of keyframe ``position`` of a ``SampleIndex``: its boxes against those of the keyframes
+    t ∈ [-horizon, horizon] \\ {0} of the same scene (``index.neighbours``), in its current ego frame (the ego
+    pose at its LiDAR timestamp). This is what ``occflownet prepare`` calls once per keyframe."""
+    sample = index[position]
+    frames = {t: box_arrays(index[j].boxes) for t, j in index.neighbours(position, horizon) if t != 0}
+    return box_flows(sample.token, box_arrays(sample.boxes), frames, sample.ego2global, dynamic_classes, grid)
 
 
 def boxes_from_annotations(annotations: Iterable[Mapping]) -> dict[str, np.ndarray]:

@@ -20,7 +20,7 @@ import numpy as np
 from occflownet import __version__
 from occflownet.config import CAMERAS
 from occflownet.data.records import Boxes, CameraRecord, LidarRecord, SampleRecord
-from occflownet.data.tables import DatasetError, resolve_version
+from occflownet.data.tables import OPTIONAL_TABLES, REQUIRED_TABLES, DatasetError, resolve_version
 
 FORMAT_VERSION = 1
 INDEX_DIRNAME = "occflownet"
@@ -203,9 +203,11 @@ def load_index(dataroot, version: str | None = None, check_tables: bool = True) 
         raise DatasetError(f"{folder / 'index.json'}: index format {meta.get('format_version')}, this package "
                            f"reads format {FORMAT_VERSION}: re-run {command}")
     if check_tables:
-        for name, size in meta.get("table_sizes", {}).items():
+        sizes = meta.get("table_sizes", {})
+        for name in (*REQUIRED_TABLES, *OPTIONAL_TABLES):
             path = dataroot / version / f"{name}.json"
-            if not path.is_file() or path.stat().st_size != size:
+            size = path.stat().st_size if path.is_file() else None
+            if size != sizes.get(name):
                 raise DatasetError(f"{path} changed since the index was written: re-run {command}")
     with np.load(folder / "index.npz", allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}

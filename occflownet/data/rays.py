@@ -219,6 +219,18 @@ class RayBuilder:
         return f.labels[inside][first]
 
 
+def endpoint_classes(rays: RayBatch, semantics: np.ndarray) -> np.ndarray:
+    """uint8 [R]: class of the voxel of ``semantics`` (uint8 [200, 200, 16], current ego frame, e.g. the Occ3D
+    ground truth) that holds each ray's endpoint, 255 where the endpoint lies outside the grid. A check of rays
+    against occupancy: on a consistent dataset most rays end in a voxel of their own label."""
+    ends = rays.endpoints()
+    inside = GRID.contains(ends)
+    ijk = GRID.index_of(ends[inside])
+    out = np.full(len(rays), 255, dtype=np.uint8)
+    out[inside] = semantics[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+    return out
+
+
 def sample_rays(rays: RayBatch, num: int, rng: np.random.Generator) -> RayBatch:
     """``num`` rays drawn uniformly from ``rays`` with ``rng`` (without replacement when there are enough)."""
     if len(rays) == 0:

@@ -162,7 +162,7 @@ def _walk(codes, shape, origin, direction):
             out_class[ids[done]] = np.where(hit, v, FREE)
             out_t[ids[done]] = np.where(hit, t_exit, t_last)
             parked += done.size
-            if parked * 4 > len(ids):  # compact when a quarter of the rays are finished
+            if parked * 8 > len(ids):  # compact once an eighth of the rays are finished
                 keep = np.ones(len(ids), dtype=bool)
                 keep[done] = False
                 keep &= flat != park
@@ -215,7 +215,10 @@ def first_hits(volume, origins, directions, grid: Grid = GRID) -> tuple[np.ndarr
     directions = np.asarray(directions, dtype=np.float64)
     if directions.ndim != 2 or directions.shape[1] != 3:
         raise ValueError(f"directions: expected [R, 3], got {directions.shape}")
-    origins = np.broadcast_to(np.asarray(origins, dtype=np.float64), directions.shape)
+    origins = np.asarray(origins, dtype=np.float64)
+    if origins.shape not in ((3,), directions.shape):
+        raise ValueError(f"origins: expected [3] or {list(directions.shape)} like directions, got {origins.shape}")
+    origins = np.broadcast_to(origins, directions.shape)
     norm = np.linalg.norm(directions, axis=1, keepdims=True)
     if not np.all(norm > 0) or not np.all(np.isfinite(directions)) or not np.all(np.isfinite(origins)):
         raise ValueError("directions must be finite and non-zero, origins finite")

@@ -37,6 +37,7 @@ class ModelConfig:
     preset: str = "tiny"
     # --- input / preprocessing (in the graph) ---
     input_size: tuple[int, int] = (160, 288)      # (H, W) internal, both multiples of 32
+    subsample_large_inputs: bool = True            # keep every n-th pixel of >= 4x larger inputs first
     image_mean: tuple[float, float, float] = IMAGENET_MEAN
     image_std: tuple[float, float, float] = IMAGENET_STD
     # --- image backbone (torchvision ResNet layout) ---

@@ -1,7 +1,7 @@
 """3D decoder: a residual Conv3d trunk on the (possibly coarsened) grid and the per-voxel MLP heads Φσ, Φs.
 
 forward(trunk grid [B, Xc, Yc, Zc, C], fine grid [B, Xc, Yc, Zc, s, s, s, F] or None)
-→ (density logits [B, Xc, Yc, Zc, s³, 1], semantic logits [B, Xc, Yc, Zc, s³, 17]) in *block layout*;
+→ (density logits [B, Xc, Yc, Zc, s³], semantic logits [B, Xc, Yc, Zc, s³, 17]) in *block layout*;
 :func:`unblock` turns block layout into the grid's [B, X, Y, Z, ...] layout (X = Xc·s, ...).
 
 With stride s > 1 the trunk output is upsampled by a learned depth-to-space projection (one linear map per
@@ -76,13 +76,14 @@ class VoxelDecoder(nn.Module):
     def forward(self, trunk: torch.Tensor, fine: torch.Tensor | None):
         b, xc, yc, zc, _ = trunk.shape
         x = self.blocks(self.stem(trunk.permute(0, 4, 1, 2, 3)))                  # [B, Ct, Xc, Yc, Zc]
-        x = x.permute(0, 2, 3, 4, 1)                                               # [B, Xc, Yc, Zc, Ct]
+        x = x.permute(0, 2, 3, 4, 1).reshape(-1, x.shape[1])                       # [M, Ct], M = B·Xc·Yc·Zc
+        # the per-voxel layers run on 2-D [rows, channels] tensors: onnxruntime then fuses bias and ReLU (Gemm)
         s3 = self.stride ** 3
         if self.up is not None:
-            x = self.up(x).reshape(b, xc, yc, zc, s3, self.head_channels)
+            x = self.up(x).reshape(-1, self.head_channels)                         # [M·s³, Ch]
             if self.skip is not None:
-                x = x + self.skip(fine.reshape(b, xc, yc, zc, s3, fine.shape[-1]))
+                x = x + self.skip(fine.reshape(-1, fine.shape[-1]))
             x = torch.relu(x)
-        else:
-            x = x.reshape(b, xc, yc, zc, 1, self.head_channels)
-        return self.sigma_head(x), self.semantic_head(x)
+        sigma = self.sigma_head(x).reshape(b, xc, yc, zc, s3)
+        semantic = self.semantic_head(x).reshape(b, xc, yc, zc, s3, NUM_CLASSES)
+        return sigma, semantic

@@ -54,12 +54,13 @@ class OccupancyModel(nn.Module):
         return intrinsics.to(torch.float32), cam2ego.to(torch.float32)
 
     def _encode(self, images, intrinsics, cam2ego):
-        """→ (σ logits [B,Xc,Yc,Zc,s³,1], semantic logits [B,Xc,Yc,Zc,s³,17] (block layout),
+        """→ (σ logits [B,Xc,Yc,Zc,s³], semantic logits [B,Xc,Yc,Zc,s³,17] (block layout),
         depth_prob [B, 6, D, h, w], feature_intrinsics [B, 6, 3, 3])."""
         intrinsics, cam2ego = self._check_inputs(images, intrinsics, cam2ego)
         cfg = self.cfg
         b = images.shape[0]
-        x, input_k = preprocess_images(images, intrinsics, cfg.input_size, cfg.image_mean, cfg.image_std)
+        x, input_k = preprocess_images(images, intrinsics, cfg.input_size, cfg.image_mean, cfg.image_std,
+                                       cfg.subsample_large_inputs)
         features = self.neck(*self.backbone(x))                                    # [B*6, N, h, w]
         h, w = features.shape[-2:]
         depth_logits, context, fine = self.depth_head(features)
@@ -83,7 +84,7 @@ class OccupancyModel(nn.Module):
         occupancy uint8 [B, 200, 200, 16] (fused with τ = cfg.threshold)."""
         sigma_logits, semantic_logits, depth_prob, feature_k = self._encode(images, intrinsics, cam2ego)
         s = self.cfg.decoder_stride
-        density = unblock(torch.sigmoid(sigma_logits[..., 0]), s)
+        density = unblock(torch.sigmoid(sigma_logits), s)
         logits = unblock(semantic_logits, s)
         with torch.no_grad():
             occupancy = fuse_occupancy(density, logits, self.cfg.threshold)
@@ -96,7 +97,7 @@ class OccupancyModel(nn.Module):
         Fuses in block layout so only the two small outputs are rearranged (the logits never are)."""
         sigma_logits, semantic_logits, _, _ = self._encode(images, intrinsics, cam2ego)
         s = self.cfg.decoder_stride
-        density = torch.sigmoid(sigma_logits[..., 0])
+        density = torch.sigmoid(sigma_logits)
         occupancy = fuse_occupancy(density, semantic_logits, self.cfg.threshold)
         return unblock(occupancy, s), unblock(density, s)
 

@@ -130,3 +130,19 @@ def render_camera(world: World, boxes: Boxes, K: np.ndarray, cam2global: np.ndar
     visible = np.bincount(id_buf[id_buf >= 0], minlength=len(boxes)).astype(np.int64)
     return CameraRender(rgb=(np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8), depth=t_buf.astype(np.float32),
                         occ=occ, box=id_buf, visible=visible, alone=alone)
+
+
+def cast_rays(boxes: Boxes, origin: np.ndarray, dirs: np.ndarray, far: float = FAR) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest hit of arbitrary rays [M, 3] from ``origin`` [3] (global) against every box in range and the ground,
+    with no screen-space culling: (t [M] in units of ``dirs``, inf for none; box index [M], -1 ground/none).
+    The reference the culled renderer must agree with; also used to cast rays through exact sub-pixel points."""
+    dirs = np.asarray(dirs, dtype=np.float64).reshape(1, -1, 3)
+    t_buf = np.full(dirs.shape[:2], np.inf)
+    id_buf = np.full(dirs.shape[:2], -1, np.int32)
+    blocks = [Block(int(i), 0, 1, 0, dirs.shape[1]) for i in boxes_in_range(boxes, origin, far)]
+    cast_blocks(np.asarray(origin, dtype=np.float64), dirs, boxes, blocks, t_buf, id_buf)
+    tg = ground_t(origin, dirs)
+    ground = (tg < t_buf) & (tg < far)
+    t_buf[ground], id_buf[ground] = tg[ground], -1
+    t_buf[t_buf > far] = np.inf
+    return t_buf[0], id_buf[0]

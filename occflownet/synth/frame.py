@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from occflownet.config import CAMERAS, FREE, GRID
+from occflownet.config import CAMERAS, FREE, GRID, Grid
 from occflownet.geometry import transform_points
 from occflownet.rig import calibration_arrays, default_rig
 from occflownet.synth.camera import CameraRender, render_camera
@@ -95,11 +95,11 @@ def render_keyframe(world: World, frame_index: int, rig: SensorRig, t0_us: int, 
                     mask_lidar.astype(np.uint8), mask_camera.astype(np.uint8), boxes)
 
 
-def lidar_mask(scan: LidarScan, lidar2ego: np.ndarray, occupied: np.ndarray) -> np.ndarray:
+def lidar_mask(scan: LidarScan, lidar2ego: np.ndarray, occupied: np.ndarray, grid: Grid = GRID) -> np.ndarray:
     """Voxels passed by the LiDAR's rays from the sensor to each return, up to the first occupied one."""
     pts = transform_points(lidar2ego, scan.points[:, :3].astype(np.float64))
     origin = np.broadcast_to(lidar2ego[:3, 3], pts.shape)
-    return traverse(origin, pts - origin, occupied, np.full(len(pts), 1.0 + 1e-6))
+    return traverse(origin, pts - origin, occupied, np.full(len(pts), 1.0 + 1e-6), grid.lower, grid.voxel_size)
 
 
 def camera_rays(rig: SensorRig) -> tuple[np.ndarray, np.ndarray]:
@@ -117,15 +117,15 @@ def camera_rays(rig: SensorRig) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(origins), np.concatenate(dirs)
 
 
-def surface_rays(rig: SensorRig, occupied: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rays from each camera to the centre of every surface voxel (occupied, with a free 6-neighbour) that projects
-    into its image: (origins [M, 3], directions [M, 3] reaching the centre at t = 1), ego frame. They catch the
-    voxels that pixel rays skip where they graze the ground far away."""
+def surface_rays(rig: SensorRig, occupied: np.ndarray, targets: np.ndarray | None = None, grid: Grid = GRID):
+    """Rays from each camera to the centre of every surface voxel (occupied, with a free 6-neighbour; optionally
+    only those in ``targets``) that projects into its image: (origins [M, 3], directions [M, 3] reaching the centre
+    at t = 1), ego frame. They catch the voxels that pixel rays skip where they graze the ground far away."""
     pad = np.pad(occupied, 1, constant_values=False)
     inner = pad[2:, 1:-1, 1:-1] & pad[:-2, 1:-1, 1:-1] & pad[1:-1, 2:, 1:-1] & pad[1:-1, :-2, 1:-1] \
         & pad[1:-1, 1:-1, 2:] & pad[1:-1, 1:-1, :-2]
-    ijk = np.argwhere(occupied & ~inner)
-    centers = np.asarray(GRID.lower) + (ijk + 0.5) * GRID.voxel_size
+    ijk = np.argwhere(occupied & ~inner & (True if targets is None else targets))
+    centers = np.asarray(grid.lower) + (ijk + 0.5) * grid.voxel_size
     origins, dirs = [], []
     for c in range(len(CAMERAS)):
         T, K = rig.cam2ego[c], rig.intrinsics[c]
@@ -140,11 +140,11 @@ def surface_rays(rig: SensorRig, occupied: np.ndarray) -> tuple[np.ndarray, np.n
     return np.concatenate(origins), np.concatenate(dirs)
 
 
-def camera_mask(rig: SensorRig, occupied: np.ndarray) -> np.ndarray:
+def camera_mask(rig: SensorRig, occupied: np.ndarray, grid: Grid = GRID) -> np.ndarray:
     """Voxels seen by the cameras (ego frame): every voxel on some camera ray before or at its first occupied voxel.
-    Rays: the pixel rays of ``camera_rays`` (to the grid's edge) and the rays to surface voxel centres."""
+    Rays: the pixel rays of ``camera_rays`` (to the grid's edge), then rays to the centres of the surface voxels
+    those did not reach (``surface_rays``)."""
     o1, d1 = camera_rays(rig)
-    o2, d2 = surface_rays(rig, occupied)
-    t_max = np.concatenate([np.full(len(o1), np.inf), np.full(len(o2), 1.0)])
-    return traverse(np.concatenate([o1, o2]), np.concatenate([d1, d2]), occupied, t_max,
-                    lower=GRID.lower, voxel_size=GRID.voxel_size)
+    seen = traverse(o1, d1, occupied, lower=grid.lower, voxel_size=grid.voxel_size)
+    o2, d2 = surface_rays(rig, occupied, targets=~seen, grid=grid)
+    return seen | traverse(o2, d2, occupied, np.full(len(o2), 1.0), lower=grid.lower, voxel_size=grid.voxel_size)

@@ -89,7 +89,8 @@ def build_world(config: WorldConfig, seed: int, scene_index: int, frames: int) -
     lane_w = rng.uniform(3.2, 3.7)
     median = rng.uniform(1.5, 3.0) if (n_lanes >= 2 and rng.random() < 0.6) else 0.0
     parking = {s: rng.random() < 0.6 for s in (-1, 1)}
-    parking[-1 if rng.random() < 0.5 else 1] = True  # at least one parking lane (parked agents live there)
+    main_parking = -1 if rng.random() < 0.5 else 1
+    parking[main_parking] = True  # at least one parking lane: parked agents of every kind live there
     road_edge = {s: median / 2 + n_lanes * lane_w + (2.4 if parking[s] else 0.0) for s in (-1, 1)}
     sidewalk_w = rng.uniform(2.5, 4.5)
     lot_front = {s: road_edge[s] + sidewalk_w for s in (-1, 1)}
@@ -163,7 +164,7 @@ def build_world(config: WorldConfig, seed: int, scene_index: int, frames: int) -
     _traffic(b, rng, config, x_min, x_max, n_lanes, lane_w, median, ego_lane, ego_speed, path, corridor)
     for s in (-1, 1):
         if parking[s]:
-            _parked(b, rng, config, s, x_min, x_max, road_edge[s], path, corridor)
+            _parked(b, rng, config, s, x_min, x_max, road_edge[s], path, corridor, every_kind=s == main_parking)
         _pedestrians(b, rng, config, s, x_min, x_max, road_edge[s], sidewalk_w, corridor)
     if cross:
         _cross_traffic(b, rng, config, xc, cross_half, road_edge, y_half)
@@ -307,21 +308,24 @@ def _traffic(b, rng, config, x_min, x_max, n_lanes, lane_w, median, ego_lane, eg
                 x += length + rng.uniform(8.0, 40.0) / max(config.traffic, 1e-3)
 
 
-def _parked(b, rng, config, s, x_min, x_max, edge, path, corridor):
-    """Parked vehicles in the parking lane of side s; the first few near the ego's path are of every kind."""
+def _parked(b, rng, config, s, x_min, x_max, edge, path, corridor, every_kind: bool):
+    """Parked vehicles in the parking lane of side s; with ``every_kind`` the first few near the ego's path are of
+    every vehicle kind (so that every class appears near the ego in every scene)."""
     y = s * (edge - 1.2)
     heading = 0.0 if s < 0 else np.pi
-    guaranteed = ["trailer", "bus", "truck", "motorcycle", "bicycle", "car"] if s < 0 else ["car", "trailer"]
+    guaranteed = ["trailer", "bus", "truck", "motorcycle", "bicycle", "car"] if every_kind else ["car", "trailer"]
     rng.shuffle(guaranteed)
-    x = path / 2 - 30.0 + rng.uniform(0, 8)
+    x = path / 2 - 25.0 + rng.uniform(0, 5)
     while x < x_max - 5:
         kind = guaranteed.pop() if guaranteed else str(rng.choice(["car", "car", "car", "truck", "trailer"]))
         if np.isfinite(corridor[0]) and corridor[0] - 8.0 < x < corridor[1] + 8.0:
             x = corridor[1] + 8.0
             continue
         b.agent(kind, x, y, heading, 0.0)
-        x += b.agents[-1].size[1] + rng.uniform(1.0, 20.0) / max(config.traffic, 1e-3)
-    x = path / 2 - 36.0
+        b.agents[-1].origin[0] += b.agents[-1].size[1] / 2  # x was the free space's start
+        gap = rng.uniform(1.0, 4.0) if guaranteed else rng.uniform(1.0, 20.0) / max(config.traffic, 1e-3)
+        x += b.agents[-1].size[1] + gap
+    x = path / 2 - 30.0
     while x > x_min + 5:
         if not (np.isfinite(corridor[0]) and corridor[0] - 8.0 < x < corridor[1] + 8.0):
             b.agent("car", x, y, heading, 0.0)

@@ -1,0 +1,104 @@
+"""Data-reader figures on a prepared nuScenes-format root: index load time, rays per keyframe, ray build time.
+
+    python benchmarks/bench_data.py --dataroot DIR [--version V] [--horizon 3] [--samples 20] [--repeat 3]
+
+Run ``occflownet prepare --dataroot DIR`` first. For each of up to ``--samples`` keyframes (evenly spread over the
+index) the rays of t ∈ [-O, O] are built (a) cold: no per-frame cache, every sweep of the window is loaded and
+projected; (b) sequential: keyframes in scene order with the default per-frame cache (what a sequential loader
+sees; a shuffled training loader is closer to cold). Prints best-of-``--repeat`` medians (the machine may be
+shared); record them in docs/data.md.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+from occflownet.config import STATIC_CLASSES
+from occflownet.data import load_index
+from occflownet.data.loaders import load_occupancy
+from occflownet.data.rays import RayBuilder, RayConfig, endpoint_classes
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--dataroot", required=True)
+    p.add_argument("--version", default=None)
+    p.add_argument("--horizon", type=int, default=3)
+    p.add_argument("--samples", type=int, default=20)
+    p.add_argument("--repeat", type=int, default=3)
+    args = p.parse_args()
+
+    t = time.perf_counter()
+    index = load_index(args.dataroot, args.version)
+    load_s = time.perf_counter() - t
+    positions = np.unique(np.linspace(0, len(index) - 1, min(args.samples, len(index))).astype(int))
+    config = RayConfig(horizon=args.horizon)
+    print(f"root {args.dataroot} ({index.version}): {len(index)} keyframes; load_index {load_s * 1e3:.1f} ms")
+
+    full = 2 * args.horizon + 1
+    cold, cold_full, rays, frames = [], [], [], []
+    for _ in range(args.repeat):
+        times, times_full = [], []
+        for pos in positions:
+            builder = RayBuilder(index, args.dataroot, config, cache_size=0)
+            t = time.perf_counter()
+            batch = builder.rays(int(pos))
+            times.append(time.perf_counter() - t)
+            rays.append(len(batch))
+            frames.append(len(np.unique(batch.time_offsets)))
+            if frames[-1] == full:
+                times_full.append(times[-1])
+        cold.append(statistics.median(times))
+        if times_full:
+            cold_full.append(statistics.median(times_full))
+    sequential = []
+    for _ in range(args.repeat):
+        builder = RayBuilder(index, args.dataroot, config)
+        t = time.perf_counter()
+        for pos in range(len(index)) if len(index) <= 200 else positions:
+            builder.rays(int(pos))
+        sequential.append((time.perf_counter() - t) / (len(index) if len(index) <= 200 else len(positions)))
+    print(f"horizon {args.horizon}: {statistics.median(frames):.0f} frames/keyframe (median), "
+          f"{statistics.median(rays):,.0f} rays/keyframe (median)")
+    print(f"rays per keyframe, cold (no cache): {min(cold) * 1e3:.0f} ms (median over {len(positions)} keyframes, "
+          f"best of {args.repeat})")
+    if cold_full:
+        print(f"rays per keyframe with all {full} frames, cold: {min(cold_full) * 1e3:.0f} ms (median, best of "
+              f"{args.repeat})")
+    print(f"rays per keyframe, sequential with cache: {min(sequential) * 1e3:.0f} ms (mean, best of {args.repeat})")
+    agreement(index, args.dataroot, config, positions)
+
+
+def agreement(index, dataroot, config: RayConfig, positions) -> None:
+    """Fraction of ray endpoints whose Occ3D voxel (current keyframe's ground truth) holds the ray's label, per t,
+    for all rays and for rays of static classes, over the keyframes in ``positions`` that have occupancy."""
+    builder = RayBuilder(index, dataroot, config)
+    hits = {}
+    for pos in positions:
+        if index[int(pos)].occupancy_path is None:
+            continue
+        rays = builder.rays(int(pos))
+        same = endpoint_classes(rays, load_occupancy(dataroot, index[int(pos)].occupancy_path).semantics) \
+            == rays.labels
+        static = np.isin(rays.labels, STATIC_CLASSES)
+        for t in np.unique(rays.time_offsets):
+            m = rays.time_offsets == t
+            a = hits.setdefault(int(t), [0, 0, 0, 0])
+            a[0] += int(same[m].sum())
+            a[1] += int(m.sum())
+            a[2] += int(same[m & static].sum())
+            a[3] += int((m & static).sum())
+    if not hits:
+        print("no keyframe with Occ3D occupancy: no label agreement figures")
+        return
+    print("endpoint voxel label == ray label (current keyframe's Occ3D gt): t, all rays, static-class rays")
+    for t in sorted(hits):
+        a = hits[t]
+        print(f"  t={t:+d}: {a[0] / max(a[1], 1):.3f} of {a[1]:,}   static {a[2] / max(a[3], 1):.3f} of {a[3]:,}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,122 @@
+"""The training data pipeline: keyframe → images, calibration, sampled rays, LiDAR depth points, 3D labels, flow.
+
+Items are addressed by ``(i, step)`` keys from :class:`~occflownet.train.sampler.StepBatchSampler`; every random
+choice of an item (which rays) comes from ``default_rng([seed, step, i])``, so a resumed run loads exactly what an
+uninterrupted one would, whatever worker process builds it.
+
+Frames: everything is in the *current ego frame* of the keyframe (ego pose at its LiDAR timestamp, the frame of
+the Occ3D ground truth). The model's ``cam2ego`` input is camera → current ego through each camera's own ego pose.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from occflownet.data.flow import flow_moves
+from occflownet.data.index import SampleIndex
+from occflownet.data.loaders import load_occupancy, load_sample_images
+from occflownet.data.rays import RayBuilder, RayConfig, sample_rays
+from occflownet.geometry import invert, transform_points
+from occflownet.config import GRID
+from occflownet.train.config import TrainConfig
+
+MAX_DEPTH_POINTS = 40000  # LiDAR points per sample kept for the LSS depth loss
+
+
+def volume_frames(time_offsets: np.ndarray, flow: bool) -> list[int]:
+    """The frames t that get their own volume copy, in volume order (volume 0 is always t = 0).
+
+    With flow every present t ≠ 0 gets its own warped copy. Without flow all t ≠ 0 share one copy (the
+    disoccluded volume, or the plain one when disocclusion is off), listed as frame 1."""
+    present = sorted(set(int(t) for t in np.unique(time_offsets)) - {0})
+    if flow:
+        return [0] + present
+    return [0, 1] if present else [0]
+
+
+class TrainingSamples(Dataset):
+    """Keyframes of one split as training items (see the module docstring)."""
+
+    def __init__(self, dataroot, index: SampleIndex, positions: np.ndarray, cfg: TrainConfig,
+                 flow_records: dict | None = None):
+        self.dataroot = Path(dataroot)
+        self.index = index
+        self.positions = np.asarray(positions, dtype=np.int64)
+        self.cfg = cfg
+        self.flow_records = flow_records or {}
+        # With occupancy flow, dynamic rays of temporal frames are kept and rendered through the warped volume.
+        ray_cfg = RayConfig(horizon=cfg.horizon, dynamic_filter=cfg.dynamic_filter and not cfg.flow)
+        self.rays = RayBuilder(index, dataroot, ray_cfg, cache_size=2 * cfg.horizon + 2)
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def __getitem__(self, key) -> dict:
+        i, step = key
+        position = int(self.positions[i])
+        sample = self.index[position]
+        rng = np.random.default_rng([self.cfg.seed, int(step), int(i)])
+        item = {
+            "token": sample.token,
+            "images": torch.from_numpy(load_sample_images(self.dataroot, sample)),          # uint8 [6, H, W, 3]
+            "intrinsics": torch.from_numpy(sample.intrinsics.astype(np.float32)),          # [6, 3, 3]
+            "cam2ego": torch.from_numpy(sample.cam2current_ego().astype(np.float32)),      # [6, 4, 4]
+        }
+        if self.cfg.uses_2d:
+            rays = sample_rays(self.rays.rays(position), self.cfg.rays_per_step, rng)
+            frames = volume_frames(rays.time_offsets, self.cfg.flow)
+            t = rays.time_offsets.astype(np.int64)
+            if self.cfg.flow:
+                lookup = {f: n for n, f in enumerate(frames)}
+                volume = np.array([lookup[int(x)] for x in t], dtype=np.int64)
+            else:
+                volume = (t != 0).astype(np.int64)
+            item.update({
+                "ray_origins": torch.from_numpy(rays.origins), "ray_directions": torch.from_numpy(rays.directions),
+                "ray_depths": torch.from_numpy(rays.depths), "ray_labels": torch.from_numpy(rays.labels.astype(np.int64)),
+                "ray_volume": torch.from_numpy(volume), "num_volumes": len(frames),
+                "depth_points": torch.from_numpy(self._depth_points(position, rng)),
+            })
+            if self.cfg.flow:
+                record = self.flow_records.get(sample.token)
+                item["flow"] = flow_moves(record, frames) if record is not None else None
+        if self.cfg.uses_3d:
+            if sample.occupancy_path is None:
+                raise FileNotFoundError(f"sample {sample.token} has no Occ3D labels (gts/) but 3D supervision is on")
+            occ = load_occupancy(self.dataroot, sample.occupancy_path)
+            item["occ_semantics"] = torch.from_numpy(occ.semantics)                       # uint8 [200, 200, 16]
+            item["occ_mask"] = torch.from_numpy(occ.mask_camera.astype(bool))
+        return item
+
+    def _depth_points(self, position: int, rng: np.random.Generator) -> np.ndarray:
+        """float32 [N, 3]: the keyframe's LiDAR points (t = 0) in the current ego frame, for the LSS depth loss."""
+        frame = self.rays.frame(position)
+        points = transform_points(invert(self.index.arrays["lidar_ego2global"][position]), frame.points)
+        points = np.unique(points, axis=0)
+        points = points[GRID.contains(points)]
+        if len(points) > MAX_DEPTH_POINTS:
+            points = points[rng.choice(len(points), MAX_DEPTH_POINTS, replace=False)]
+        return points.astype(np.float32)
+
+
+def collate(items: list[dict]) -> dict:
+    """Stack per-sample tensors; concatenate rays with a global volume index (sample-major volume order)."""
+    out = {"tokens": [it["token"] for it in items]}
+    for key in ("images", "intrinsics", "cam2ego", "occ_semantics", "occ_mask"):
+        if key in items[0]:
+            out[key] = torch.stack([it[key] for it in items])
+    if "ray_origins" in items[0]:
+        offsets = np.cumsum([0] + [it["num_volumes"] for it in items[:-1]])
+        for key in ("ray_origins", "ray_directions", "ray_depths", "ray_labels"):
+            out[key] = torch.cat([it[key] for it in items])
+        out["ray_volume"] = torch.cat([it["ray_volume"] + int(o) for it, o in zip(items, offsets)])
+        out["volume_source"] = torch.cat([torch.full((it["num_volumes"],), b, dtype=torch.long)
+                                          for b, it in enumerate(items)])
+        out["volume_is_temporal"] = torch.cat([torch.arange(it["num_volumes"]) > 0 for it in items])
+        out["depth_points"] = [it["depth_points"] for it in items]
+        if "flow" in items[0]:
+            out["flow"] = [(it["flow"], int(o)) for it, o in zip(items, offsets)]
+    return out

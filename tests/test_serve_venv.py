@@ -1,0 +1,108 @@
+"""The serving image's environment without Docker: a fresh venv with only ``pip install <repo>[serve]``.
+
+It is what docker/Dockerfile builds (slim Python + the ``serve`` extra, no torch). The venv is cached under
+``~/.cache/occflownet/serve-venv-<hash of pyproject.toml>`` (dependencies are installed once, which needs PyPI and
+takes a few minutes the first time); each run re-installs just the package from a copy of the working tree, then
+starts ``occflownet serve`` from the venv on a free 127.0.0.1 port against the fake model, checks /readyz and one
+POST, and that torch cannot be imported there. Skipped, saying why, when pip cannot reach a package index.
+"""
+import fcntl
+import hashlib
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from serve_fixtures import build_fake_model, image_files, synthetic_images
+
+REPO = Path(__file__).resolve().parents[1]
+CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "occflownet"
+NETWORK_SIGNS = ("Could not find a version", "No matching distribution", "NewConnectionError",
+                 "Failed to establish a new connection", "Temporary failure in name resolution", "Network is unreachable",
+                 "ConnectTimeoutError", "ReadTimeoutError", "ProxyError", "Max retries exceeded")
+
+
+def _source_copy(dest: Path) -> Path:
+    """What a Docker build context would hold: pyproject, README and the three packages (no .venv, no tests)."""
+    dest.mkdir(parents=True)
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(REPO / name, dest / name)
+    for package in ("occflownet", "export", "serve"):
+        shutil.copytree(REPO / package, dest / package, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    return dest
+
+
+def _pip(python: Path, *args: str, timeout: int = 1500) -> None:
+    proc = subprocess.run([str(python), "-m", "pip", "install", "--disable-pip-version-check", *args],
+                          capture_output=True, text=True, timeout=timeout)
+    if proc.returncode != 0:
+        output = proc.stdout + proc.stderr
+        if any(sign in output for sign in NETWORK_SIGNS):
+            pytest.skip(f"pip could not reach a package index to build the serving venv: {output.strip()[-400:]}")
+        raise AssertionError(f"pip install {' '.join(args)} failed:\n{output[-3000:]}")
+
+
+@pytest.fixture(scope="module")
+def serve_venv(tmp_path_factory) -> Path:
+    key = hashlib.sha256((REPO / "pyproject.toml").read_bytes()).hexdigest()[:12]
+    venv = CACHE / f"serve-venv-{key}"
+    python = venv / "bin" / "python"
+    CACHE.mkdir(parents=True, exist_ok=True)
+    source = _source_copy(tmp_path_factory.mktemp("serve-venv") / "src")
+    with open(CACHE / f"serve-venv-{key}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)   # concurrent test runs share one venv
+        if not (venv / ".deps-installed").exists():
+            shutil.rmtree(venv, ignore_errors=True)
+            subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
+            _pip(python, "--upgrade", "pip", "setuptools>=68")
+            _pip(python, f"{source}[serve]")
+            (venv / ".deps-installed").write_text(f"pyproject sha256 prefix {key}\n")
+        else:  # dependencies cached: refresh only the package itself from this working tree
+            _pip(python, "--no-deps", "--force-reinstall", "--no-build-isolation", str(source), timeout=600)
+    return venv
+
+
+def test_serving_venv_has_no_torch_and_serves(serve_venv, tmp_path):
+    python = serve_venv / "bin" / "python"
+    probe = subprocess.run([str(python), "-c", "import torch"], capture_output=True, text=True, cwd=tmp_path)
+    assert probe.returncode != 0 and "No module named 'torch'" in probe.stderr
+    model = build_fake_model(tmp_path / "model.onnx")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([str(serve_venv / "bin" / "occflownet"), "serve", "--model", str(model), "--port",
+                             str(port), "--no-access-log"], cwd=tmp_path, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            assert proc.poll() is None, f"server exited: {proc.stderr.read()}"
+            assert time.monotonic() < deadline, "server not ready after 60 s"
+            try:
+                if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        r = httpx.post(f"{base}/v1/occupancy", files=image_files(synthetic_images((96, 54))),
+                       headers={"Accept": "application/octet-stream"}, timeout=30)
+        assert r.status_code == 200, r.text
+        grid = np.frombuffer(r.content, np.uint8)
+        assert grid.size == 640_000 and grid.max() <= 17
+        modules = subprocess.run([str(python), "-c", "import serve.app, sys; print(serve.app.__file__); "
+                                  "print('torch' in sys.modules)"], capture_output=True, text=True, cwd=tmp_path)
+        assert str(serve_venv) in modules.stdout and modules.stdout.strip().endswith("False"), modules
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

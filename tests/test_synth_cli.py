@@ -1,0 +1,32 @@
+"""`occflownet synth` from the command line: writes the layout and previews, refuses bad input clearly."""
+import cv2
+
+from occflownet.cli import main
+
+
+def test_synth_command_writes_dataset_and_previews(tmp_path, capsys):
+    out = tmp_path / "w"
+    args = ["synth", "--out", str(out), "--scenes", "1", "--frames", "2", "--seed", "1", "--width", "96",
+            "--height", "54", "--margin", "50", "--preview", "--no-progress"]
+    assert main(args) == 0
+    assert "wrote 2 keyframes" in capsys.readouterr().out
+    assert (out / "v1.0-trainval" / "sample.json").is_file() and (out / "v1.0-trainval" / "splits.json").is_file()
+    previews = sorted((out / "preview").glob("*.png"))
+    assert len(previews) == 2
+    img = cv2.imread(str(previews[0]))
+    assert img.shape == (2 * 54 + 44, 3 * 96 + 2 * 54, 3)
+    assert len(list((out / "samples" / "CAM_FRONT").glob("*.jpg"))) == 2
+    # an existing dataset is not overwritten silently
+    assert main(args) == 2
+    assert "already holds a dataset" in capsys.readouterr().err
+    assert main(args + ["--overwrite", "--version", "v1.0-mini"]) == 0
+    assert (out / "v1.0-mini" / "scene.json").is_file()
+
+
+def test_synth_command_rejects_bad_options(tmp_path, capsys):
+    base = ["synth", "--out", str(tmp_path / "x"), "--no-progress"]
+    assert main(base + ["--margin", "10"]) == 2
+    assert "--margin" in capsys.readouterr().err
+    assert main(base + ["--frames", "0"]) == 2
+    assert "at least one" in capsys.readouterr().err
+    assert main(base + ["--lanes", "3", "1"]) == 2

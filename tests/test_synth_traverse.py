@@ -1,0 +1,112 @@
+"""Voxel traversal (masks) and voxelisation against independent brute-force answers on small cases."""
+import numpy as np
+
+from occflownet.config import FREE, Grid
+from occflownet.synth.frame import SensorRig, camera_mask, camera_rays, surface_rays
+from occflownet.synth.voxelize import traverse, voxelize
+from occflownet.synth.world import Boxes, GroundRaster, World
+
+
+def brute_force(origins, dirs, occupied, t_max, lower, vs):
+    """Per ray: every voxel whose box the ray segment [0, t_max) enters, in order of entry, up to and including
+    the first occupied one (slab test against each voxel separately)."""
+    X, Y, Z = occupied.shape
+    ijk = np.stack(np.meshgrid(np.arange(X), np.arange(Y), np.arange(Z), indexing="ij"), -1).reshape(-1, 3)
+    lo = np.asarray(lower) + ijk * vs
+    out = np.zeros(occupied.size, bool)
+    occ = occupied.reshape(-1)
+    for o, d, tm in zip(origins, dirs, t_max):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (lo - o) / d, (lo + vs - o) / d
+        t_in, t_out = np.minimum(t1, t2).max(1), np.maximum(t1, t2).min(1)
+        hit = (t_in < t_out) & (t_out > 0) & (np.maximum(t_in, 0) < tm)
+        cand = np.nonzero(hit)[0]
+        for v in cand[np.argsort(np.maximum(t_in[cand], 0))]:
+            out[v] = True
+            if occ[v]:
+                break
+    return out.reshape(occupied.shape)
+
+
+def test_traverse_equals_brute_force():
+    rng = np.random.default_rng(3)
+    shape, lower, vs = (12, 9, 6), np.array([-2.0, -1.5, -1.0]), 0.5
+    occupied = rng.random(shape) < 0.07
+    n = 400
+    upper = lower + np.array(shape) * vs
+    origins = rng.uniform(lower - 2, upper + 2, (n, 3))  # inside and outside the grid
+    dirs = rng.normal(size=(n, 3)) * rng.uniform(0.2, 3.0, (n, 1))  # any length
+    dirs[:20, 2] = 0.0  # rays parallel to a grid plane
+    t_max = np.where(rng.random(n) < 0.4, rng.uniform(0.1, 4.0, n), np.inf)
+    got = traverse(origins, dirs, occupied, t_max, lower, vs)
+    want = brute_force(origins, dirs, occupied, t_max, lower, vs)
+    assert want.sum() > 100
+    assert np.array_equal(got, want), f"{(got & ~want).sum()} extra, {(want & ~got).sum()} missing voxels"
+
+
+def test_traverse_stops_at_first_occupied_voxel():
+    occupied = np.zeros((10, 1, 1), bool)
+    occupied[6] = True
+    got = traverse(np.array([[0.05, 0.5, 0.5]]), np.array([[1.0, 0.0, 0.0]]), occupied, None, (0, 0, 0), 1.0)
+    assert got[:, 0, 0].tolist() == [True] * 7 + [False] * 3
+
+
+def small_world(boxes: Boxes) -> World:
+    raster = GroundRaster(np.full((200, 200), 11, np.uint8), np.zeros((200, 200), np.uint8), -10.0, -10.0, 0.1)
+    return World("t", np.eye(4), raster, boxes, [], np.zeros(2), 0.0, np.array([0.0, 0.0, 1.0]))
+
+
+def box(center, half, yaw, raw=28):
+    return Boxes(np.array([center], float), np.array([half], float), np.array([yaw], float),
+                 np.array([raw], np.uint8), np.ones((1, 3), np.float32), np.zeros(1, np.int8),
+                 np.ones(1, np.float32), np.full(1, -1, np.int32))
+
+
+def test_camera_mask_voxels_lie_on_camera_rays_before_first_occupied():
+    """Small grid, small rig, a building and the ground: the mask is exactly the union over the camera rays it
+    uses of the brute-force traversal, and every one of those rays leaves a camera centre inside its image."""
+    grid = Grid(lower=(-6.0, -6.0, -1.0), upper=(6.0, 6.0, 2.2), voxel_size=0.4, shape=(30, 30, 8))
+    world = small_world(box((3.0, 1.0, 1.0), (0.5, 1.5, 1.0), 0.4))
+    sem = voxelize(world, world.static, np.eye(4), grid)
+    occupied = sem != FREE
+    rig = SensorRig.default(48, 27, mask_ray_angle=0.05)
+    mask = camera_mask(rig, occupied, grid)
+    o1, d1 = camera_rays(rig)
+    seen = brute_force(o1, d1, occupied, np.full(len(o1), np.inf), grid.lower, grid.voxel_size)
+    o2, d2 = surface_rays(rig, occupied, ~seen, grid)
+    seen |= brute_force(o2, d2, occupied, np.ones(len(o2)), grid.lower, grid.voxel_size)
+    assert np.array_equal(mask, seen)
+    assert mask[occupied].any() and not mask[sem == 15].all()  # the building's far side is hidden
+    for o, d in ((o1, d1), (o2, d2)):
+        cams = [np.nonzero(np.all(np.isclose(rig.cam2ego[:, :3, 3], oi), 1))[0][0] for oi in o[::37]]
+        for c, di in zip(cams, d[::37]):
+            p = rig.cam2ego[c][:3, :3].T @ di  # direction in the camera frame
+            u, v, w = rig.intrinsics[c] @ p
+            assert w > 0 and 0 <= u / w <= rig.width and 0 <= v / w <= rig.height
+
+
+def test_voxelize_axis_aligned_and_rotated_boxes():
+    grid = Grid(lower=(-4.0, -4.0, -1.0), upper=(4.0, 4.0, 2.2), voxel_size=0.4, shape=(20, 20, 8))
+    # axis-aligned box x in [0.1, 0.7], y in [-0.3, 0.3], z in [0, 1]: voxels i 10..11, j 9..10, k 2..4
+    world = small_world(box((0.4, 0.0, 0.5), (0.3, 0.3, 0.5), 0.0, raw=17))
+    sem = voxelize(world, world.static, np.eye(4), grid)
+    car = np.argwhere(sem == 4)
+    assert {tuple(v) for v in car} == {(i, j, k) for i in (10, 11) for j in (9, 10) for k in (2, 3, 4)}
+    assert (sem[:, :, 2][sem[:, :, 2] != 4] == 11).all() and (sem[:, :, [0, 1, 5, 6, 7]] != 11).all()
+    # rotated box: every voxel holding a point of the box is marked; every marked voxel touches the box
+    yaw = 0.7
+    world = small_world(box((0.3, -0.2, 0.9), (1.3, 0.4, 0.6), yaw, raw=17))
+    sem = voxelize(world, world.static, np.eye(4), grid)
+    rng = np.random.default_rng(0)
+    local = rng.uniform(-1, 1, (20000, 3)) * [1.3, 0.4, 0.6]
+    c, s = np.cos(yaw), np.sin(yaw)
+    pts = np.stack([c * local[:, 0] - s * local[:, 1], s * local[:, 0] + c * local[:, 1], local[:, 2]], 1)
+    pts += [0.3, -0.2, 0.9]
+    ijk = grid.index_of(pts)
+    assert (sem[ijk[:, 0], ijk[:, 1], ijk[:, 2]] == 4).all()
+    marked = np.argwhere(sem == 4)
+    centres = np.asarray(grid.lower) + (marked + 0.5) * 0.4 - [0.3, -0.2, 0.9]
+    lx, ly = c * centres[:, 0] + s * centres[:, 1], -s * centres[:, 0] + c * centres[:, 1]
+    reach = 0.2 * np.sqrt(2)  # half the voxel's xy diagonal
+    assert (np.abs(lx) < 1.3 + reach).all() and (np.abs(ly) < 0.4 + reach).all()
+    assert len(marked) < 1.6 * len({tuple(v) for v in ijk})
