@@ -76,8 +76,10 @@ def main() -> None:
     frames = [t for t in range(-half, half + 1) if t != 0]
     boxes, ego = make_tracks(args.boxes, frames, rng)
     record = box_flows("bench", boxes[0], {t: boxes[t] for t in frames}, ego)
+    t_prep = timed(lambda: box_flows("bench", boxes[0], {t: boxes[t] for t in frames}, ego), args.repeat)
     print(f"device={args.device} threads={torch.get_num_threads()} boxes={len(record.box_index)} "
           f"moves={len(record.offset)} frames={frames}")
+    print(f"box_flows (precompute, once per keyframe in prepare): {1e3 * t_prep:.2f} ms/keyframe")
 
     # voxels_in_box: per box, and the whole per-sample preparation (all boxes, all frames) done in a data worker
     t_box = timed(lambda: [voxels_in_box(c, s, q) for c, s, q in zip(record.center, record.size_wlh,

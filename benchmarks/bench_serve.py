@@ -1,9 +1,14 @@
 """Load benchmark of `occflownet serve` on 127.0.0.1 with the real nuScenes frame (six 1600x900 JPEGs + calib.json).
 
-Prints: the direct baseline (JPEG decode of the six images, ``session.run`` on the same decoded arrays, in this
-process with the server's thread settings), then throughput and p50/p99 latency at 1, 2, 4 concurrent clients against
-a real uvicorn process, the HTTP overhead at one client, and the server's resident memory after 10 and after
-``--rss-requests`` requests. Every loop is bounded by a request count and a time limit.
+1. Starts `occflownet serve` (a real uvicorn process) and, in this process, an onnxruntime session on the same model
+   with the same thread settings, on the same decoded arrays.
+2. Interleaved phase (one client): direct JPEG decode, direct ``session.run`` and one HTTP request, in turn, so
+   machine noise (the 2-core machine is shared) hits both sides alike. Reports the HTTP overhead two ways: paired
+   (client latency minus the server's own decode/queue/inference/encode times of that request, from its
+   Server-Timing header) and against the direct run (p50 HTTP - p50 session.run - p50 server decode).
+3. Throughput and p50/p99 latency at 1, 2, 4 concurrent clients (client threads share the machine with the server).
+4. Resident memory of the server after 10 and after ``--rss-requests`` requests; B=2 vs two B=1 runs (micro-batching).
+Every loop is bounded by a request count and a time limit.
 
     python benchmarks/bench_serve.py                       # real random-init tiny export if `occflownet export`
                                                            # works, else the fake test model (says which)
@@ -16,7 +21,6 @@ import argparse
 import json
 import os
 import socket
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -46,8 +50,17 @@ def rss_mib(pid: int) -> float:
     return float("nan")
 
 
-def pct(values, q):
-    return float(np.percentile(np.asarray(values) * 1e3, q))
+def p(values, q) -> float:
+    return float(np.percentile(np.asarray(values), q)) if len(values) else float("nan")
+
+
+def server_timing(headers) -> dict[str, float]:
+    out = {}
+    for item in headers.get("server-timing", "").split(","):
+        name, _, dur = item.strip().partition(";dur=")
+        if dur:
+            out[name] = float(dur)
+    return out
 
 
 def get_model(args, workdir: Path) -> tuple[Path, str]:
@@ -65,41 +78,47 @@ def get_model(args, workdir: Path) -> tuple[Path, str]:
     return build_fake_model(workdir / "fake.onnx"), "FAKE test model (tests/serve_fixtures.py), not a network"
 
 
-def direct_baseline(model: Path, threads: int, repeats: int) -> dict:
-    import cv2
+class Direct:
+    """The same work without HTTP: decode the six JPEGs, session.run on the decoded arrays (this process)."""
 
-    from serve.calibration import calibration_for_sizes
-    from serve.decode import decode_image, stack_images
-    from serve.model_runtime import ModelRuntime
-    from serve.settings import ServeSettings
+    def __init__(self, model: Path, threads: int):
+        from serve.calibration import calibration_for_sizes
+        from serve.model_runtime import ModelRuntime
+        from serve.settings import ServeSettings
 
-    jpegs = {cam: (FRAME / f"{cam}.jpg").read_bytes() for cam in CAMERAS}
-    calib = json.loads((FRAME / "calib.json").read_text())
-    decode_s = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        images = [decode_image(cam, jpegs[cam], 1 << 30) for cam in CAMERAS]
-        decode_s.append(time.perf_counter() - t0)
-    cv2_threads = cv2.getNumThreads()
-    runtime = ModelRuntime.load(model, ServeSettings(intra_op_threads=threads))
-    K, T = calibration_for_sizes(calib, runtime.metadata, [(im.shape[1], im.shape[0]) for im in images])
-    stacked, K = stack_images(images, K)
-    runtime.infer(stacked, K, T)  # warm-up
-    infer_s = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        runtime.infer(stacked, K, T)
-        infer_s.append(time.perf_counter() - t0)
-    del runtime
-    return {"decode_serial_p50_ms": pct(decode_s, 50), "infer_p50_ms": pct(infer_s, 50),
-            "infer_p99_ms": pct(infer_s, 99), "cv2_threads": cv2_threads}
+        self.jpegs = {cam: (FRAME / f"{cam}.jpg").read_bytes() for cam in CAMERAS}
+        self.runtime = ModelRuntime.load(model, ServeSettings(intra_op_threads=threads))
+        images = self.decode()
+        calib = json.loads((FRAME / "calib.json").read_text())
+        self.K, self.T = calibration_for_sizes(calib, self.runtime.metadata, [(1600, 900)] * 6)
+        self.images = np.stack(images)
+        for _ in range(3):
+            self.infer()
+
+    def decode(self):
+        from serve.decode import decode_image
+        return [decode_image(cam, self.jpegs[cam], 1 << 30) for cam in CAMERAS]
+
+    def infer(self):
+        return self.runtime.infer(self.images, self.K, self.T)
+
+    def batch2(self):
+        feeds = {"images": np.stack([self.images] * 2), "intrinsics": np.stack([self.K] * 2),
+                 "cam2ego": np.stack([self.T] * 2)}
+        return self.runtime.session.run(["occupancy"], feeds)
+
+
+def timed(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return (time.perf_counter() - t0) * 1e3
 
 
 def load_level(base: str, files: dict, concurrency: int, max_requests: int, time_limit: float,
                accept: str = "application/octet-stream") -> dict:
     import httpx
 
-    latencies, statuses, lock = [], {}, threading.Lock()
+    latencies, statuses, lock, stages = [], {}, threading.Lock(), {}
     remaining = [max_requests]
     stop_at = time.monotonic() + time_limit
 
@@ -112,11 +131,13 @@ def load_level(base: str, files: dict, concurrency: int, max_requests: int, time
                     remaining[0] -= 1
                 t0 = time.perf_counter()
                 r = c.post(f"{base}/v1/occupancy", files=files, headers={"Accept": accept})
-                dt = time.perf_counter() - t0
+                dt = (time.perf_counter() - t0) * 1e3
                 with lock:
                     statuses[r.status_code] = statuses.get(r.status_code, 0) + 1
                     if r.status_code == 200:
                         latencies.append(dt)
+                        for name, ms in server_timing(r.headers).items():
+                            stages.setdefault(name, []).append(ms)
 
     t0 = time.perf_counter()
     threads = [threading.Thread(target=client) for _ in range(concurrency)]
@@ -126,8 +147,50 @@ def load_level(base: str, files: dict, concurrency: int, max_requests: int, time
         t.join()
     wall = time.perf_counter() - t0
     return {"concurrency": concurrency, "ok": len(latencies), "statuses": statuses, "wall_s": wall,
-            "throughput_rps": len(latencies) / wall, "p50_ms": pct(latencies, 50) if latencies else float("nan"),
-            "p99_ms": pct(latencies, 99) if latencies else float("nan")}
+            "rps": len(latencies) / wall, "p50": p(latencies, 50), "p99": p(latencies, 99),
+            "stages": {k: p(v, 50) for k, v in stages.items()}}
+
+
+def interleaved(base: str, files: dict, direct: Direct, n: int) -> None:
+    import httpx
+
+    rows = {"decode": [], "run": [], "http": [], "paired": [], "server_decode": [], "server_inference": []}
+    with httpx.Client(timeout=120) as c:
+        for _ in range(n):
+            rows["decode"].append(timed(direct.decode))
+            rows["run"].append(timed(direct.infer))
+            t0 = time.perf_counter()
+            r = c.post(f"{base}/v1/occupancy", files=files, headers={"Accept": "application/octet-stream"})
+            rows["http"].append((time.perf_counter() - t0) * 1e3)
+            assert r.status_code == 200, r.text
+            st = server_timing(r.headers)
+            rows["paired"].append(rows["http"][-1] - sum(st.values()))
+            rows["server_decode"].append(st["decode"])
+            rows["server_inference"].append(st["inference"])
+    m = {k: p(v, 50) for k, v in rows.items()}
+    vs_direct = m["http"] - m["run"] - m["server_decode"]
+    print(f"interleaved, 1 client, {n} rounds (p50 ms): direct serial decode {m['decode']:.1f}, direct session.run "
+          f"{m['run']:.1f} | HTTP request {m['http']:.1f} = server decode (6 threads) {m['server_decode']:.1f} + "
+          f"inference {m['server_inference']:.1f} + rest")
+    print(f"HTTP overhead, paired (latency - server-side stages): p50 {m['paired']:.1f} ms, "
+          f"p99 {p(rows['paired'], 99):.1f} ms = {100 * m['paired'] / m['run']:.1f} % of session.run")
+    print(f"HTTP overhead vs direct (p50 HTTP - p50 session.run - p50 server decode): {vs_direct:.1f} ms = "
+          f"{100 * vs_direct / m['run']:.1f} % of session.run (target <= 10 % plus decode)")
+
+
+def wait_ready(base: str, proc) -> None:
+    import httpx
+
+    deadline = time.monotonic() + 120
+    while True:
+        if proc.poll() is not None or time.monotonic() > deadline:
+            raise SystemExit("server did not become ready")
+        try:
+            if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
 
 
 def main() -> int:
@@ -135,17 +198,19 @@ def main() -> int:
     parser.add_argument("--model")
     parser.add_argument("--fake", action="store_true", help="use the fake test model")
     parser.add_argument("--requests", type=int, default=40, help="requests per concurrency level")
-    parser.add_argument("--time-limit", type=float, default=90.0, help="seconds per concurrency level")
+    parser.add_argument("--rounds", type=int, default=20, help="rounds of the interleaved phase")
+    parser.add_argument("--time-limit", type=float, default=90.0, help="seconds per phase")
     parser.add_argument("--concurrency", default="1,2,4")
     parser.add_argument("--rss-requests", type=int, default=500)
-    parser.add_argument("--repeats", type=int, default=15, help="direct-baseline repetitions")
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: cores)")
     args = parser.parse_args()
     if not FRAME.is_dir():
         print(f"real frame not found at {FRAME}", file=sys.stderr)
         return 2
+    from serve.malloc import cap_malloc_arenas
     from serve.settings import available_cores
 
+    cap_malloc_arenas()  # as the server does
     threads = args.threads or available_cores()
     files = {cam: (f"{cam}.jpg", (FRAME / f"{cam}.jpg").read_bytes(), "image/jpeg") for cam in CAMERAS}
     files["calibration"] = ("calib.json", (FRAME / "calib.json").read_bytes(), "application/json")
@@ -153,14 +218,8 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         model, which = get_model(args, Path(tmp))
-        print(f"# model: {which}; {model.stat().st_size / 1e6:.1f} MB; {available_cores()} cores; "
-              f"intra-op threads {threads}")
-        base_line = direct_baseline(model, threads, args.repeats)
-        print(f"direct: decode 6 JPEGs (1600x900, serial) p50 {base_line['decode_serial_p50_ms']:.1f} ms; "
-              f"session.run p50 {base_line['infer_p50_ms']:.1f} ms, p99 {base_line['infer_p99_ms']:.1f} ms")
-
-        import httpx
-
+        print(f"# model: {which}; {model.stat().st_size / 1e6:.1f} MB; {available_cores()} cores; intra-op threads "
+              f"{threads}; load average at start {os.getloadavg()[0]:.2f}")
         port = free_port()
         env = os.environ | {"OCCFLOWNET_INTRA_OP_THREADS": str(threads)}
         proc = subprocess.Popen([sys.executable, "-m", "occflownet", "serve", "--model", str(model), "--port",
@@ -168,50 +227,44 @@ def main() -> int:
                                  "--max-queue", str(max(levels) + 2)], env=env, cwd=REPO)
         base = f"http://127.0.0.1:{port}"
         try:
-            deadline = time.monotonic() + 120
-            while True:
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    print("server did not become ready", file=sys.stderr)
-                    return 1
-                try:
-                    if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.2)
+            import httpx
+
+            wait_ready(base, proc)
             first = load_level(base, files, 1, 10, args.time_limit)
-            rss_10 = rss_mib(proc.pid)
-            done = first["ok"]
-            results = []
+            rss_10, done = rss_mib(proc.pid), first["ok"]
+            direct = Direct(model, threads)
+            interleaved(base, files, direct, args.rounds)
+            done += args.rounds
+            one = [timed(direct.infer) for _ in range(5)]
+            two = [timed(direct.batch2) for _ in range(5)]
+            print(f"micro-batching: session.run B=2 p50 {p(two, 50):.1f} ms vs B=1 {p(one, 50):.1f} ms "
+                  f"({p(two, 50) / (2 * p(one, 50)):.2f} x two B=1 runs)")
+            del direct
             for c in levels:
                 res = load_level(base, files, c, args.requests, args.time_limit)
-                results.append(res)
                 done += res["ok"]
-                print(f"c={c}: {res['ok']} ok {res['statuses']} in {res['wall_s']:.1f} s: "
-                      f"{res['throughput_rps']:.2f} req/s, p50 {res['p50_ms']:.1f} ms, p99 {res['p99_ms']:.1f} ms")
+                stages = ", ".join(f"{k} {v:.1f}" for k, v in res["stages"].items())
+                print(f"c={c}: {res['ok']} ok {res['statuses']} in {res['wall_s']:.1f} s: {res['rps']:.2f} req/s, "
+                      f"p50 {res['p50']:.1f} ms, p99 {res['p99']:.1f} ms; server-side p50 (ms): {stages}")
             for accept in ("application/json", "image/png"):
                 r = load_level(base, files, 1, 10, args.time_limit, accept)
                 done += r["ok"]
-                print(f"c=1 Accept {accept}: p50 {r['p50_ms']:.1f} ms")
-            c1 = next(r for r in results if r["concurrency"] == 1)
-            overhead = c1["p50_ms"] - base_line["infer_p50_ms"] - base_line["decode_serial_p50_ms"]
-            print(f"HTTP overhead at c=1 (p50 - session.run p50 - serial decode p50): {overhead:.1f} ms = "
-                  f"{100 * overhead / base_line['infer_p50_ms']:.1f} % of session.run "
-                  f"(target <= 10 % plus decode)")
-            remaining = max(0, args.rss_requests - done)
+                print(f"c=1 Accept {accept}: p50 {r['p50']:.1f} ms, server encode p50 {r['stages']['encode']:.1f} ms")
             t0 = time.monotonic()
-            while remaining > 0 and time.monotonic() - t0 < 20 * args.time_limit:
-                r = load_level(base, files, 2, min(remaining, 100), args.time_limit)
-                remaining -= r["ok"]
+            while done < args.rss_requests and time.monotonic() - t0 < 20 * args.time_limit:
+                r = load_level(base, files, 2, min(args.rss_requests - done, 100), args.time_limit)
                 done += r["ok"]
                 if r["ok"] == 0:
                     break
-            print(f"server RSS: {rss_10:.0f} MiB after 10 requests, {rss_mib(proc.pid):.0f} MiB after {done} requests")
-            metrics = httpx.get(f"{base}/metrics").text
-            for line in metrics.splitlines():
-                if line.startswith("occflownet_stage_duration_seconds_sum") or \
-                        line.startswith("occflownet_stage_duration_seconds_count"):
-                    print("  " + line)
+            print(f"server RSS: {rss_10:.0f} MiB after 10 requests, {rss_mib(proc.pid):.0f} MiB after {done} "
+                  f"requests; load average at end {os.getloadavg()[0]:.2f}")
+            text = httpx.get(f"{base}/metrics").text
+            sums = {line.split('"')[1]: float(line.split()[-1]) for line in text.splitlines()
+                    if line.startswith("occflownet_stage_duration_seconds_sum")}
+            count = next(float(line.split()[-1]) for line in text.splitlines()
+                         if line.startswith('occflownet_stage_duration_seconds_count{stage="inference"}'))
+            print("server means over all requests (ms): " +
+                  ", ".join(f"{k} {1e3 * v / count:.1f}" for k, v in sums.items()))
         finally:
             proc.terminate()
             proc.wait(30)

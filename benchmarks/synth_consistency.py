@@ -1,6 +1,6 @@
 """Consistency figures of the synthetic world: do LiDAR labels, Occ3D voxels and image depth agree?
 
-    python benchmarks/synth_consistency.py [--scenes 2 --frames 6 --seed 0 --width 400 --height 225]
+    python benchmarks/synth_consistency.py [--scenes 2 --frames 6 --seed 0 --width 480 --height 270]
 
 Prints, over all keyframes:
 - LiDAR → gt: share of LiDAR points inside the grid whose voxel in labels.npz has the point's own class
@@ -88,8 +88,8 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", type=int, default=2)
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--width", type=int, default=400)
-    ap.add_argument("--height", type=int, default=225)
+    ap.add_argument("--width", type=int, default=480)
+    ap.add_argument("--height", type=int, default=270)
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)

@@ -7,7 +7,8 @@ the warm-up inference), ``GET /v1/metadata``, ``GET /metrics`` (Prometheus text)
 Request pipeline of ``POST /v1/occupancy`` (CPU work never on the event loop):
 Accept → 406 | not warmed up → 503 | queue full → 503 + Retry-After | stream multipart parts (422/413/415) |
 read image headers, check pixel limits (413) | calibration (400) | wait for a CPU slot | decode the six images in
-threads (400) | common size | run ORT on the inference thread | encode in a thread | release the slot.
+threads straight into the [6, H, W, 3] tensor, resizing any not at the common size (400) | run ORT on the inference
+thread | encode in a thread | release the slot.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import time
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 
+import numpy as np
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from starlette.concurrency import run_in_threadpool
@@ -26,7 +28,7 @@ from starlette.responses import JSONResponse, Response
 from occflownet import __version__
 from serve import api_docs
 from serve.calibration import CalibrationError, calibration_for_sizes, parse_calibration
-from serve.decode import ImageError, check_header, decode_image, stack_images
+from serve.decode import ImageError, check_header, common_size, decode_image, intrinsics_for_size
 from serve.encode import FORMATS, NotAcceptable, encode, negotiate
 from serve.errors import CODES, ApiError, error_response
 from serve.form import read_parts
@@ -215,13 +217,15 @@ async def _occupancy(request: Request, ctx: ServingContext, media_type: str) -> 
     t_queue = time.perf_counter()
     async with ctx.gate.slot() as slot:
         t_decode = time.perf_counter()
+        common = ctx.runtime.fixed_image_size or common_size(sizes)
+        images = np.empty((len(md.cameras), common[1], common[0], 3), np.uint8)  # [6, H, W, 3] RGB
         try:
-            images = await asyncio.gather(*(run_in_threadpool(decode_image, cam, parts[cam].data,
-                                                              settings.max_image_pixels) for cam in md.cameras))
+            await asyncio.gather(*(run_in_threadpool(decode_image, cam, parts[cam].data, settings.max_image_pixels,
+                                                     images[i]) for i, cam in enumerate(md.cameras)))
         except ImageError as exc:
             raise ApiError(exc.status, "bad_image", str(exc)) from None
         del parts
-        images, K = await run_in_threadpool(stack_images, list(images), K)
+        K = intrinsics_for_size(K, sizes, common)
         t_infer = time.perf_counter()
         occupancy = await ctx.gate.infer(slot, ctx.runtime.infer, images, K, T)
         t_encode = time.perf_counter()

@@ -4,9 +4,10 @@
   header claims more pixels than the limit is refused before any pixel buffer is allocated.
 - :func:`decode_image` decodes to RGB uint8 [H, W, 3] as stored (EXIF orientation is ignored: calibrations refer to
   the sensor's pixel grid), refusing truncated files (JPEG without EOI after the scan, PNG without IEND).
-- :func:`stack_images`: the graph takes one [6, H, W, 3] tensor, so when the six images differ in size each one is
-  resized to the common size (the size most cameras share; ties go to the earlier camera in camera order) and its
-  intrinsics are scaled by the same (sx, sy). Images that already have the common size are passed untouched.
+- the graph takes one [6, H, W, 3] tensor, so when the six images differ in size each one is resized to the
+  :func:`common_size` (the size most cameras share; ties go to the earlier camera in camera order) while it is
+  decoded into its slice of the tensor, and :func:`intrinsics_for_size` scales its intrinsics by the same (sx, sy).
+  Images that already have the common size are decoded straight into place, untouched.
 """
 from __future__ import annotations
 
@@ -121,8 +122,11 @@ def check_header(camera: str, data: bytes, max_pixels: int) -> ImageHeader:
     return header
 
 
-def decode_image(camera: str, data: bytes, max_pixels: int) -> np.ndarray:
-    """One image part → RGB uint8 [H, W, 3], after :func:`check_header`. Raises ImageError naming ``camera``."""
+def decode_image(camera: str, data: bytes, max_pixels: int, out: np.ndarray | None = None) -> np.ndarray:
+    """One image part → RGB uint8 [H, W, 3], after :func:`check_header`. Raises ImageError naming ``camera``.
+
+    With ``out`` (uint8 [h, w, 3], e.g. one camera's slice of the frame tensor) the RGB pixels are written there,
+    resized to (w, h) when the image's size differs (INTER_AREA when shrinking, INTER_LINEAR when enlarging)."""
     header = check_header(camera, data, max_pixels)
     bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
@@ -130,7 +134,14 @@ def decode_image(camera: str, data: bytes, max_pixels: int) -> np.ndarray:
     if bgr.shape[:2] != (header.height, header.width):
         raise ImageError(camera, f"decoded size {bgr.shape[1]}x{bgr.shape[0]} disagrees with the header's "
                                  f"{header.width}x{header.height}")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    if out is None:
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    if bgr.shape != out.shape:
+        shrink = bgr.shape[0] * bgr.shape[1] > out.shape[0] * out.shape[1]
+        method = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+        bgr = cv2.resize(bgr, (out.shape[1], out.shape[0]), interpolation=method)
+    cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB, dst=out)
+    return out
 
 
 def common_size(sizes: list[tuple[int, int]]) -> tuple[int, int]:
@@ -140,18 +151,12 @@ def common_size(sizes: list[tuple[int, int]]) -> tuple[int, int]:
     return next(s for s in sizes if counts[s] == best)
 
 
-def stack_images(images: list[np.ndarray], intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Six RGB uint8 [H_i, W_i, 3] images and their intrinsics float32 [6, 3, 3] (each for its own size) →
-    (uint8 [6, H, W, 3], float32 [6, 3, 3]) at the common size, resized images' intrinsics scaled accordingly."""
-    sizes = [(im.shape[1], im.shape[0]) for im in images]
-    w, h = common_size(sizes)
-    out = np.empty((len(images), h, w, 3), np.uint8)
+def intrinsics_for_size(intrinsics: np.ndarray, sizes: list[tuple[int, int]], size: tuple[int, int]) -> np.ndarray:
+    """Intrinsics [6, 3, 3] (each for its image's (w_i, h_i) in ``sizes``) → float32 [6, 3, 3] for images resized
+    to ``size`` (w, h): K' = diag(w / w_i, h / h_i, 1) · K; unchanged where the size already matches."""
+    w, h = size
     K = intrinsics.astype(np.float64).copy()
-    for i, (im, (wi, hi)) in enumerate(zip(images, sizes)):
-        if (wi, hi) == (w, h):
-            out[i] = im
-            continue
-        shrink = wi * hi > w * h
-        out[i] = cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
-        K[i] = scale_intrinsics(K[i], w / wi, h / hi)
-    return out, K.astype(np.float32)
+    for i, (wi, hi) in enumerate(sizes):
+        if (wi, hi) != (w, h):
+            K[i] = scale_intrinsics(K[i], w / wi, h / hi)
+    return K.astype(np.float32)

@@ -37,7 +37,7 @@ def negotiate(accept: str | None) -> str:
     """The media type to answer for an ``Accept`` header (RFC 9110 q-values and wildcards); JSON when absent."""
     if accept is None or not accept.strip():
         return JSON
-    best, best_q, best_rank = None, 0.0, None
+    best, best_rank = None, None
     for item in accept.split(","):
         pieces = [p.strip() for p in item.split(";")]
         media = pieces[0].lower()
@@ -59,7 +59,7 @@ def negotiate(accept: str | None) -> str:
                 # exact matches beat wildcards at equal q (specificity), then our preference order
                 key = (q, media == fmt, -rank)
                 if best is None or key > best_rank:
-                    best, best_q, best_rank = fmt, q, key
+                    best, best_rank = fmt, key
     if best is None:
         raise NotAcceptable(f"cannot produce any of {accept!r}; supported: {', '.join(FORMATS)}")
     return best

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import MultipartParser, parse_options_header
+from starlette.requests import ClientDisconnect
 
 from serve.errors import ApiError
 from serve.limits import BodyTooLarge
@@ -93,6 +94,8 @@ async def read_parts(request, limits: dict[str, int]) -> dict[str, Part]:
         parser.finalize()
     except BodyTooLarge as exc:
         raise ApiError(413, "payload_too_large", str(exc), headers={"Connection": "close"}) from None
+    except ClientDisconnect:
+        raise ApiError(400, "bad_request", "client disconnected during the upload") from None
     except FormParserError as exc:
         raise ApiError(400, "bad_request", f"malformed multipart body: {exc}") from None
     if not state["end"]:

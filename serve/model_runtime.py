@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from serve.calibration import calibration_for_sizes
+from serve.decode import intrinsics_for_size
 from serve.settings import ServeSettings
 
 CONTRACT = "v1"
@@ -117,6 +119,9 @@ class ModelRuntime:
         self.ready = threading.Event()
         self.warmup_error: str | None = None
         self.warmup_seconds: float | None = None
+        # (W, H) when the graph fixes the image size (contract v1 allows any; an export may still pin it), else None
+        shape = next(a.shape for a in session.get_inputs() if a.name == "images")
+        self.fixed_image_size = (shape[3], shape[2]) if all(isinstance(d, int) for d in shape[2:4]) else None
 
     @classmethod
     def load(cls, path: str | Path, settings: ServeSettings) -> "ModelRuntime":
@@ -160,14 +165,14 @@ class ModelRuntime:
         return occ[0]
 
     def warm_up(self) -> None:
-        """Run one inference on black images of the default calibration's size; sets ``ready`` on success."""
-        from serve.calibration import calibration_for_sizes  # local: avoids an import cycle in type checkers
-
-        w, h = (int(v) for v in self.metadata.default_calibration["image_size"])
+        """Run one inference on black images of the default calibration's size (or the graph's fixed size); sets
+        ``ready`` on success."""
+        size = tuple(int(v) for v in self.metadata.default_calibration["image_size"])
+        w, h = self.fixed_image_size or size
         t0 = time.perf_counter()
         try:
-            K, T = calibration_for_sizes(None, self.metadata, [(w, h)] * 6)
-            self.infer(np.zeros((6, h, w, 3), np.uint8), K, T)
+            K, T = calibration_for_sizes(None, self.metadata, [size] * 6)
+            self.infer(np.zeros((6, h, w, 3), np.uint8), intrinsics_for_size(K, [size] * 6, (w, h)), T)
         except Exception as exc:
             self.warmup_error = f"warm-up inference failed: {type(exc).__name__}: {exc}"
             raise

@@ -41,8 +41,9 @@ def fake_metadata(threshold: float = 0.5, default_size=DEFAULT_SIZE) -> dict:
 
 
 def build_fake_model(path: Path, threshold: float = 0.5, seed: int = 0, default_size=DEFAULT_SIZE,
-                     metadata: dict | None = None) -> Path:
-    """Write the fake contract-v1 model to ``path`` (about 0.7 MB); ``metadata`` overrides/extends the keys."""
+                     metadata: dict | None = None, fixed_hw: tuple[int, int] | None = None) -> Path:
+    """Write the fake contract-v1 model to ``path`` (about 0.7 MB); ``metadata`` overrides/extends the keys;
+    ``fixed_hw`` pins the images input's H and W (contract v1 leaves them dynamic)."""
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
@@ -104,7 +105,7 @@ def build_fake_model(path: Path, threshold: float = 0.5, seed: int = 0, default_
     X, Y, Z = GRID.shape
     graph = helper.make_graph(
         nodes, "occflownet_fake",
-        [helper.make_tensor_value_info("images", TensorProto.UINT8, ["B", 6, "H", "W", 3]),
+        [helper.make_tensor_value_info("images", TensorProto.UINT8, ["B", 6, *(fixed_hw or ("H", "W")), 3]),
          helper.make_tensor_value_info("intrinsics", TensorProto.FLOAT, ["B", 6, 3, 3]),
          helper.make_tensor_value_info("cam2ego", TensorProto.FLOAT, ["B", 6, 4, 4])],
         [helper.make_tensor_value_info("occupancy", TensorProto.UINT8, ["B", X, Y, Z]),

@@ -145,6 +145,15 @@ def test_images_of_different_sizes_are_resized_to_the_common_size(client):
     np.testing.assert_array_equal(_grid(client.post("/v1/occupancy", files=files)), _expected([shrunk] + IMAGES[1:]))
 
 
+def test_graph_with_a_fixed_image_size_gets_resized_images(tmp_path):
+    path = build_fake_model(tmp_path / "fixed.onnx", fixed_hw=(54, 96))
+    big = synthetic_images((192, 108))
+    with TestClient(create_app(ServeSettings(model_path=str(path)))) as c:
+        _wait_ready(c)
+        shrunk = [cv2.resize(im, SIZE, interpolation=cv2.INTER_AREA) for im in big]
+        np.testing.assert_array_equal(_grid(c.post("/v1/occupancy", files=image_files(big))), _expected(shrunk))
+
+
 def test_calibration_part_sent_as_a_file_with_json_type(client):
     calib = default_rig(96, 54)
     files = image_files(IMAGES) | {"calibration": ("calib.json", json.dumps(calib).encode(), "application/json")}

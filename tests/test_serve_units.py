@@ -3,6 +3,7 @@ import asyncio
 import io
 import json
 import struct
+import threading
 
 import cv2
 import numpy as np
@@ -12,7 +13,7 @@ from serve_fixtures import FRAME_DIR, encode_image, fake_metadata, synthetic_ima
 from occflownet.config import CAMERAS, CLASS_COLORS, FREE
 from occflownet.rig import default_rig
 from serve.calibration import CalibrationError, calibration_for_sizes, parse_calibration, validate_calibration
-from serve.decode import ImageError, check_header, common_size, decode_image, image_header, stack_images
+from serve.decode import ImageError, check_header, common_size, decode_image, image_header, intrinsics_for_size
 from serve.encode import NotAcceptable, encode, negotiate, top_down_rgb
 from serve.limits import BodySizeLimitMiddleware, InferenceGate, Saturated
 from serve.metrics import Metrics
@@ -90,17 +91,21 @@ def test_pixel_limit_is_checked_from_the_header_before_decoding(monkeypatch):
         decode_image("CAM_FRONT", bytes(data), 4096 * 4096)
 
 
-def test_common_size_and_stack_scales_intrinsics():
+def test_common_size_decode_into_place_and_intrinsics():
     assert common_size([(2, 1), (4, 2), (4, 2), (2, 1)]) == (2, 1)  # tie → earlier camera
     assert common_size([(2, 1), (4, 2), (4, 2)]) == (4, 2)
     small = synthetic_images((96, 54))
     big = cv2.resize(small[0], (192, 108), interpolation=cv2.INTER_LINEAR)
+    frame = np.zeros((2, 54, 96, 3), np.uint8)
+    decode_image("CAM_FRONT", encode_image(big), 10**6, out=frame[0])   # resized while decoded
+    decode_image("CAM_BACK", encode_image(small[1]), 10**6, out=frame[1])  # decoded in place, untouched
+    np.testing.assert_array_equal(frame[0], cv2.resize(big, (96, 54), interpolation=cv2.INTER_AREA))
+    np.testing.assert_array_equal(frame[1], small[1])
     K = np.tile(np.array([[100.0, 0, 48], [0, 100.0, 27], [0, 0, 1]], np.float32), (6, 1, 1))
     K[0] *= np.array([[2], [2], [1]], np.float32)   # CAM_FRONT's intrinsics are for its 192x108 image
-    images, K2 = stack_images([big] + small[1:], K)
-    assert images.shape == (6, 54, 96, 3)
-    np.testing.assert_allclose(K2[0], K[1])          # halved back to the 96x54 intrinsics
-    np.testing.assert_array_equal(images[1:], np.stack(small[1:]))
+    K2 = intrinsics_for_size(K, [(192, 108)] + [(96, 54)] * 5, (96, 54))
+    assert K2.dtype == np.float32
+    np.testing.assert_allclose(K2, np.tile(K[1], (6, 1, 1)))         # halved back; the others unchanged
 
 
 # ---------------------------------------------------------------- calibration
@@ -316,9 +321,38 @@ def test_gate_admission_and_retry_after():
         with pytest.raises(Saturated) as info:
             gate.admit()
         assert info.value.retry_after == 1          # nothing measured yet
-        result, queue_s, run_s = await gate.run(lambda x: x * 2, 21)
-        assert result == 42 and gate.running == 0
+        async with gate.slot() as slot:
+            assert gate.running == 1
+            assert await gate.infer(slot, lambda x: x * 2, 21) == 42
+        assert gate.running == 0
         gate.leave()
         gate.admit()                                 # room again
+        gate.shutdown()
+    asyncio.run(scenario())
+
+
+def test_gate_slot_outlives_a_cancelled_request_until_its_inference_ends():
+    async def scenario():
+        gate = InferenceGate(max_inflight=1, max_queue=0)
+        release = threading.Event()
+
+        async def request():
+            async with gate.slot() as slot:
+                await gate.infer(slot, release.wait, 10)
+
+        task = asyncio.create_task(request())
+        while gate.running == 0:
+            await asyncio.sleep(0.001)
+        await asyncio.sleep(0.02)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        assert gate.running == 1                     # the thread still computes: slot not given back yet
+        release.set()
+        for _ in range(500):
+            if gate.running == 0:
+                break
+            await asyncio.sleep(0.01)
+        assert gate.running == 0
         gate.shutdown()
     asyncio.run(scenario())

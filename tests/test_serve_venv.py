@@ -24,8 +24,9 @@ from serve_fixtures import build_fake_model, image_files, synthetic_images
 REPO = Path(__file__).resolve().parents[1]
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "occflownet"
 NETWORK_SIGNS = ("Could not find a version", "No matching distribution", "NewConnectionError",
-                 "Failed to establish a new connection", "Temporary failure in name resolution", "Network is unreachable",
-                 "ConnectTimeoutError", "ReadTimeoutError", "ProxyError", "Max retries exceeded")
+                 "Failed to establish a new connection", "Temporary failure in name resolution",
+                 "Network is unreachable", "ConnectTimeoutError", "ReadTimeoutError", "ProxyError",
+                 "Max retries exceeded")
 
 
 def _source_copy(dest: Path) -> Path:

@@ -1,12 +1,46 @@
-"""`occflownet export`: export a model to ONNX with parity check."""
-from ._pending import not_yet
+"""`occflownet export`: export a model to ONNX (contract v1) with a torch ↔ onnxruntime parity check."""
+import sys
 
 HELP = "export a model to ONNX with parity check"
 
 
 def add_arguments(parser):
-    pass
+    src = parser.add_mutually_exclusive_group(required=True)
+    src.add_argument("--checkpoint", help="torch checkpoint written by `occflownet train`")
+    src.add_argument("--preset", choices=("tiny", "base", "paper"), help="randomly initialised preset "
+                     "(needs --random-init)")
+    parser.add_argument("--random-init", action="store_true", help="with --preset: random weights from --seed")
+    parser.add_argument("--seed", type=int, default=0, help="seed for --random-init (default 0)")
+    parser.add_argument("--out", required=True, help="output .onnx file (written only if every check passes)")
+    parser.add_argument("--parity-frame", action="append", default=[], metavar="DIR",
+                        help="extra parity sample: a folder with six CAM_*.jpg and calib.json (repeatable)")
+    parser.add_argument("--fp16", action="store_true", help="also write <out>.fp16.onnx (float16 weights/compute)")
+    parser.add_argument("--int8", action="store_true",
+                        help="also write <out>.int8.onnx (static QDQ quantisation, calibrated on synthetic samples)")
 
 
 def run(args) -> int:
-    return not_yet("export", 3)
+    if args.preset and not args.random_init:
+        print("occflownet export: --preset needs --random-init (or use --checkpoint)", file=sys.stderr)
+        return 2
+    from export.onnx_export import ExportError, export_model
+    from occflownet.model import CheckpointError
+    from occflownet.predict import model_from_source
+
+    try:
+        model = model_from_source(args.checkpoint, args.preset, args.seed)
+        result = export_model(model, model.cfg, args.out, parity_frames=args.parity_frame)
+    except (ExportError, CheckpointError, FileNotFoundError, ValueError) as exc:
+        print(f"occflownet export: {exc}", file=sys.stderr)
+        return 1
+    print(result.summary())
+    if args.fp16 or args.int8:
+        from export.variants import write_variants
+
+        try:
+            for line in write_variants(result.path, model.cfg, fp16=args.fp16, int8=args.int8):
+                print(line)
+        except (ExportError, ValueError, RuntimeError) as exc:
+            print(f"occflownet export: variant failed: {exc}", file=sys.stderr)
+            return 1
+    return 0

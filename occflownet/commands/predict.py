@@ -1,12 +1,61 @@
-"""`occflownet predict`: predict occupancy for one set of six images."""
-from ._pending import not_yet
+"""`occflownet predict`: predict occupancy for one set of six images.
+
+``--model model.onnx`` runs onnxruntime only (torch is never imported); ``--checkpoint`` and
+``--preset P --random-init --seed N`` run the torch model.
+"""
+import sys
 
 HELP = "predict occupancy for one set of six images"
 
 
 def add_arguments(parser):
-    pass
+    src = parser.add_mutually_exclusive_group(required=True)
+    src.add_argument("--model", help="exported ONNX model (onnxruntime only, no torch needed)")
+    src.add_argument("--checkpoint", help="torch checkpoint written by `occflownet train`")
+    src.add_argument("--preset", choices=("tiny", "base", "paper"), help="randomly initialised preset "
+                     "(needs --random-init)")
+    parser.add_argument("--random-init", action="store_true", help="with --preset: random weights from --seed")
+    parser.add_argument("--seed", type=int, default=0, help="seed for --random-init (default 0)")
+    parser.add_argument("--images", required=True, help="folder with CAM_FRONT.jpg ... CAM_BACK_RIGHT.jpg")
+    parser.add_argument("--calib", required=True, help="calibration JSON (per camera intrinsic + cam2ego)")
+    parser.add_argument("--out", required=True, help="output .npz (occupancy uint8, density float32)")
+    parser.add_argument("--png", help="optional top-down picture of the grid")
+    parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: cores)")
 
 
 def run(args) -> int:
-    return not_yet("predict", 3)
+    import time
+
+    from occflownet import inference_io as io
+    from occflownet.config import CLASS_NAMES, FREE
+
+    if args.preset and not args.random_init:
+        print("occflownet predict: --preset needs --random-init (or use --checkpoint / --model)", file=sys.stderr)
+        return 2
+    try:
+        images = io.load_image_folder(args.images)
+        K, T = io.calibration_for_images(io.load_calibration(args.calib), images.shape[2], images.shape[1])
+        t0 = time.perf_counter()
+        if args.model:
+            session = io.create_session(args.model, args.threads)
+            occupancy, density = io.run_session(session, images, K, T)
+        else:
+            from occflownet.predict import model_from_source, predict_torch
+
+            model = model_from_source(args.checkpoint, args.preset, args.seed)
+            occupancy, density = predict_torch(model, images, K, T)
+        seconds = time.perf_counter() - t0
+        io.save_grid(args.out, occupancy, density)
+        if args.png:
+            io.save_png(args.png, io.bev_image(occupancy))
+    except (FileNotFoundError, ValueError, OSError) as exc:
+        print(f"occflownet predict: {exc}", file=sys.stderr)
+        return 1
+    counts = io.class_counts(occupancy)
+    occupied = sum(n for c, n in counts.items() if c != FREE)
+    top = sorted(((n, c) for c, n in counts.items() if c != FREE and n), reverse=True)[:5]
+    print(f"wrote {args.out}: {occupied} occupied voxels of {occupancy.size} ({seconds * 1000:.0f} ms); "
+          f"top classes: " + ", ".join(f"{CLASS_NAMES[c]} {n}" for n, c in top))
+    if args.png:
+        print(f"wrote {args.png}")
+    return 0

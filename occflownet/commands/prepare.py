@@ -19,6 +19,8 @@ def add_arguments(parser):
     parser.add_argument("--verify-files", action="store_true",
                         help="check that every image, LiDAR, lidarseg and Occ3D file referenced exists")
     parser.add_argument("--recount", action="store_true", help="recount classes even if the counts are current")
+    parser.add_argument("--flow-horizon", type=int, default=3,
+                        help="frames t in [-O, O] for which box flows are precomputed (training's --horizon <= O)")
     parser.add_argument("--skip-class-counts", action="store_true",
                         help="write the index only (e.g. a root without nuScenes-lidarseg)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -72,26 +74,11 @@ def run(args) -> int:
     out = save_index(index, args.dataroot)
     print(f"index written to {out}")
 
-    # ------------------------------------------------------------------------------------------------------
-    # Flow precompute hook. occflownet/data/flow.py (written by the flow work) is expected to provide
-    #     precompute_flow(index: SampleIndex, dataroot, progress: bool) -> None
-    # and to write its own files under index_dir(dataroot, version). It runs after the index is saved.
-    return _precompute_flow(index, args.dataroot, progress=not args.quiet)
+    # Occupancy flow of dynamic boxes, written beside the index (versioned by FLOW_FORMAT_VERSION).
+    from occflownet.data.flow import precompute_flow
 
-
-def _precompute_flow(index, dataroot, progress: bool) -> int:
-    try:
-        from occflownet.data import flow
-    except ImportError as e:
-        if e.name != "occflownet.data.flow":
-            raise
-        flow = None
-    precompute = getattr(flow, "precompute_flow", None)
-    if precompute is None:
-        print("flow precompute: occflownet.data.flow provides no precompute_flow yet; nothing precomputed",
-              file=sys.stderr)
-        return 0
-    precompute(index, dataroot, progress=progress)
+    path = precompute_flow(index, args.dataroot, horizon=args.flow_horizon, progress=not args.quiet)
+    print(f"flow records written to {path}")
     return 0
 
 

@@ -1,12 +1,84 @@
-"""`occflownet train`: train a model."""
-from ._pending import not_yet
+"""`occflownet train`: train a model from a prepared nuScenes-format root (single process or under torchrun)."""
+import argparse
 
-HELP = "train a model"
+HELP = "train a model (2D rendering, temporal frames, dynamic handling, occupancy flow, optional 3D labels)"
+
+# Per-preset defaults where a CPU preset needs smaller numbers than the official GPU recipe.
+PRESET_DEFAULTS = {
+    "tiny": {"rays_per_step": 4096, "lr": 2e-3, "warmup_steps": 50, "ema_decay": 0.99, "checkpoint_every": 50},
+    "base": {"rays_per_step": 32768, "lr": 1e-4, "warmup_steps": 200, "ema_decay": 0.999, "checkpoint_every": 500},
+    "paper": {"rays_per_step": 32768, "lr": 1e-4, "warmup_steps": 200, "ema_decay": 0.999, "checkpoint_every": 500},
+}
 
 
-def add_arguments(parser):
-    pass
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", default="tiny", choices=sorted(PRESET_DEFAULTS))
+    p.add_argument("--dataroot", required=True, help="nuScenes-format root (run `occflownet prepare` on it first)")
+    p.add_argument("--version", default=None, help="table version folder (default: the only one in the root)")
+    p.add_argument("--split", default="train")
+    p.add_argument("--out", required=True, help="run folder: checkpoints/, log.jsonl, train_config.json")
+    p.add_argument("--supervision", default="2d", choices=["2d", "3d", "2d+3d"])
+    p.add_argument("--horizon", type=int, default=3, help="temporal frames t in [-O, O] (O = 0: no temporal rays)")
+    p.add_argument("--flow", action=argparse.BooleanOptionalAction, default=False, help="occupancy flow")
+    p.add_argument("--flow-mover", default="idw", choices=["idw", "nearest"])
+    p.add_argument("--dynamic-filter", action=argparse.BooleanOptionalAction, default=True)
+    p.add_argument("--disocclusion", action=argparse.BooleanOptionalAction, default=True)
+    p.add_argument("--loss-weighting", action=argparse.BooleanOptionalAction, default=True)
+    p.add_argument("--depth-loss", action=argparse.BooleanOptionalAction, default=True,
+                   help="rendered-depth MSE and LiDAR depth BCE (off: semantics only)")
+    p.add_argument("--max-steps", type=int, default=1000)
+    p.add_argument("--time-limit", type=float, default=0.0, help="stop with a checkpoint after this many seconds")
+    p.add_argument("--batch-size", type=int, default=1, help="samples per process per step")
+    p.add_argument("--rays-per-step", type=int, default=None, help="rays per sample per step (official 32768)")
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--weight-decay", type=float, default=1e-2)
+    p.add_argument("--warmup-steps", type=int, default=None)
+    p.add_argument("--ema-decay", type=float, default=None)
+    p.add_argument("--checkpoint-every", type=int, default=None)
+    p.add_argument("--log-every", type=int, default=10)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--num-workers", type=int, default=2)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--no-amp", action="store_true", help="disable mixed precision on CUDA")
+    p.add_argument("--threshold", type=float, default=None, help="τ (default 0.35 for 2d, 0.30 with 3D labels)")
+    p.add_argument("--resume", action="store_true", help="continue from <out>/checkpoints/last.pt")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def config_from_args(args):
+    from occflownet.data.index import load_index
+    from occflownet.train.config import TrainConfig
+
+    defaults = PRESET_DEFAULTS[args.preset]
+
+    def pick(name):
+        value = getattr(args, name)
+        return defaults[name] if value is None else value
+
+    version = args.version or load_index(args.dataroot, None, check_tables=False).version
+    return TrainConfig(
+        preset=args.preset, dataroot=str(args.dataroot), out=str(args.out), version=version, split=args.split,
+        supervision=args.supervision, horizon=args.horizon, flow=args.flow, flow_mover=args.flow_mover,
+        dynamic_filter=args.dynamic_filter, disocclusion=args.disocclusion, loss_weighting=args.loss_weighting,
+        depth_loss=args.depth_loss, max_steps=args.max_steps, time_limit_s=args.time_limit,
+        batch_size=args.batch_size, rays_per_step=pick("rays_per_step"), lr=pick("lr"),
+        weight_decay=args.weight_decay, warmup_steps=pick("warmup_steps"), ema_decay=pick("ema_decay"),
+        checkpoint_every=pick("checkpoint_every"), log_every=args.log_every, seed=args.seed,
+        num_workers=args.num_workers, amp=not args.no_amp, device=args.device, threshold=args.threshold,
+    )
 
 
 def run(args) -> int:
-    return not_yet("train", 6)
+    import sys
+
+    from occflownet.data.tables import DatasetError
+    from occflownet.train.loop import TrainingError, train
+
+    try:
+        cfg = config_from_args(args)
+        path = train(cfg, resume=args.resume, progress=not args.quiet)
+    except (TrainingError, DatasetError, FileNotFoundError, KeyError, ValueError) as e:
+        print(f"occflownet train: error: {e}", file=sys.stderr)
+        return 1
+    print(f"checkpoint: {path}", file=sys.stderr)
+    return 0

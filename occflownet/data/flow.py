@@ -14,6 +14,7 @@ Box input (plain arrays, per frame, global frame): a mapping with
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
@@ -306,3 +307,51 @@ def load_flow_record(path) -> FlowRecord:
     if len(records) != 1:
         raise ValueError(f"{path}: expected one flow record, found {len(records)}")
     return next(iter(records.values()))
+
+
+def flow_path(dataroot, version: str) -> Path:
+    """Where ``prepare`` writes the flow records of a root: beside the sample index."""
+    from .index import index_dir
+
+    return index_dir(dataroot, version) / "flow.npz"
+
+
+def precompute_flow(index, dataroot, horizon: int = 3, progress: bool = False, workers: int | None = None) -> Path:
+    """Flow records of every keyframe of ``index`` (``keyframe_flow``), written once to ``flow_path``.
+
+    Parallel over keyframes (a process pool once there are enough of them to pay for it); deterministic, so
+    re-running writes the same file. ``flow.json`` beside it records the horizon it was computed for."""
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm import tqdm
+
+    positions = list(range(len(index)))
+    workers = workers if workers is not None else min(4, os.cpu_count() or 1)
+    bar = dict(total=len(positions), desc="flow", unit="keyframe", disable=not progress)
+    if workers > 1 and len(positions) >= 2000:
+        chunk = max(1, len(positions) // (workers * 8))
+        with ProcessPoolExecutor(workers) as pool:
+            records = list(tqdm(pool.map(_keyframe_flow_job, [(index, p, horizon) for p in positions],
+                                         chunksize=chunk), **bar))
+    else:
+        records = [keyframe_flow(index, p, horizon) for p in tqdm(positions, **bar)]
+    path = flow_path(dataroot, index.version)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    save_flow_records(tmp, records)
+    os.replace(tmp, path)
+    path.with_suffix(".json").write_text(json.dumps({"horizon": int(horizon), "format_version": FLOW_FORMAT_VERSION,
+                                                     "keyframes": len(records)}))
+    return path
+
+
+def flow_horizon(dataroot, version: str) -> int | None:
+    """The horizon the written flow records cover (None when ``prepare`` wrote none)."""
+    meta = flow_path(dataroot, version).with_suffix(".json")
+    return int(json.loads(meta.read_text())["horizon"]) if meta.is_file() else None
+
+
+def _keyframe_flow_job(job) -> FlowRecord:
+    index, position, horizon = job
+    return keyframe_flow(index, position, horizon)

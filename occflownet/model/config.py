@@ -50,7 +50,7 @@ class ModelConfig:
     depth_max: float = 45.0
     num_depth_bins: int = 32
     context_channels: int = 32                     # lifted feature channels pooled into the decoder grid
-    fine_channels: int = 8                         # extra channels pooled at full resolution (decoder_stride > 1)
+    fine_skip: bool = True                         # also lift head_channels features at full resolution (s > 1)
     # --- 3D decoder ---
     decoder_stride: int = 4                        # 1, 2, 4 or 8: the trunk's grid is GRID.shape / stride
     decoder_channels: int = 32
@@ -83,8 +83,8 @@ class ModelConfig:
             raise ValueError(f"decoder_stride must be 1, 2, 4 or 8 (dividing {GRID.shape}), got {s}")
         if not 0.0 < self.threshold < 1.0:
             raise ValueError(f"threshold must lie in (0, 1), got {self.threshold}")
-        if self.fine_channels < 0 or self.context_channels < 1:
-            raise ValueError("context_channels must be >= 1 and fine_channels >= 0")
+        if self.context_channels < 1 or self.head_channels < 1 or self.decoder_channels < 1:
+            raise ValueError("context_channels, decoder_channels and head_channels must be >= 1")
 
     # ---- derived quantities ----
     @property
@@ -95,7 +95,7 @@ class ModelConfig:
     @property
     def uses_fine_skip(self) -> bool:
         """Whether lifted features are also pooled at full resolution as a skip into the heads."""
-        return self.decoder_stride > 1 and self.fine_channels > 0
+        return self.decoder_stride > 1 and self.fine_skip
 
     @property
     def trunk_grid(self) -> tuple[int, int, int]:
@@ -132,14 +132,14 @@ PRESETS: dict[str, ModelConfig] = {
     # The usual deployment size: ResNet-50 at 256x704, trunk at 100x100x8.
     "base": ModelConfig(
         preset="base", input_size=(256, 704), backbone_block="bottleneck", backbone_layers=(3, 4, 6, 3),
-        backbone_width=64, neck_channels=256, num_depth_bins=88, context_channels=32, fine_channels=8,
+        backbone_width=64, neck_channels=256, num_depth_bins=88, context_channels=32, fine_skip=True,
         decoder_stride=2, decoder_channels=32, decoder_blocks=2, head_channels=32,
         sigma_hidden=(64, 64), semantic_hidden=(64, 64)),
     # The paper's scale: 512x1408 images, full-resolution 3D decoder, heads with 3 hidden layers of 256.
     # (The paper uses a Swin-B backbone; the ResNet-50 here keeps the package torchvision-weight compatible.)
     "paper": ModelConfig(
         preset="paper", input_size=(512, 1408), backbone_block="bottleneck", backbone_layers=(3, 4, 6, 3),
-        backbone_width=64, neck_channels=256, num_depth_bins=88, context_channels=32, fine_channels=0,
+        backbone_width=64, neck_channels=256, num_depth_bins=88, context_channels=32, fine_skip=False,
         decoder_stride=1, decoder_channels=32, decoder_blocks=2, head_channels=32,
         sigma_hidden=(256, 256, 256), semantic_hidden=(256, 256, 256)),
 }

@@ -1,12 +1,14 @@
 """3D decoder: a residual Conv3d trunk on the (possibly coarsened) grid and the per-voxel MLP heads Φσ, Φs.
 
-forward(trunk grid [B, Xc, Yc, Zc, C], fine grid [B, Xc, Yc, Zc, s, s, s, F] or None)
+forward(trunk grid [B, Xc, Yc, Zc, C], fine points (rows int64 [N], features [N, head_channels]) or None)
 → (density logits [B, Xc, Yc, Zc, s³], semantic logits [B, Xc, Yc, Zc, s³, 17]) in *block layout*;
 :func:`unblock` turns block layout into the grid's [B, X, Y, Z, ...] layout (X = Xc·s, ...).
 
 With stride s > 1 the trunk output is upsampled by a learned depth-to-space projection (one linear map per
-sub-voxel, i.e. a transposed Conv3d with kernel = stride = s), added to the full-resolution lifted features
-(skip), and the heads run on every full-resolution voxel. With s = 1 the heads run on the trunk output.
+sub-voxel, i.e. a transposed Conv3d with kernel = stride = s); the full-resolution lifted features (skip) are
+scatter-added straight into that upsampled grid (pooling then projecting equals projecting then pooling, so the
+depth head predicts the skip features in head width and no dense intermediate grid is built); the heads then run
+on every full-resolution voxel. With s = 1 the heads run on the trunk output.
 """
 from __future__ import annotations
 
@@ -14,6 +16,10 @@ import torch
 from torch import nn
 
 from occflownet.config import NUM_CLASSES
+
+# Initial bias of Φσ's output: σ starts near sigmoid(-2.2) ≈ 0.1 (most of space is free), so freshly initialised
+# models render rays that travel into the scene instead of stopping in the first voxels.
+SIGMA_PRIOR_LOGIT = -2.2
 
 
 class ResBlock3d(nn.Module):
@@ -55,7 +61,7 @@ def unblock(x: torch.Tensor, stride: int) -> torch.Tensor:
 class VoxelDecoder(nn.Module):
     """Residual 3D trunk at stride ``stride`` + depth-to-space upsampling + per-voxel heads Φσ, Φs."""
 
-    def __init__(self, in_channels: int, fine_channels: int, stride: int, channels: int, blocks: int,
+    def __init__(self, in_channels: int, stride: int, channels: int, blocks: int,
                  head_channels: int, sigma_hidden: tuple[int, ...], semantic_hidden: tuple[int, ...]):
         super().__init__()
         self.stride = stride
@@ -64,16 +70,16 @@ class VoxelDecoder(nn.Module):
         self.blocks = nn.Sequential(*[ResBlock3d(channels) for _ in range(blocks)])
         if stride > 1:
             self.up = nn.Linear(channels, stride ** 3 * head_channels)
-            self.skip = nn.Linear(fine_channels, head_channels) if fine_channels > 0 else None
             head_in = head_channels
         else:
-            self.up = self.skip = None
+            self.up = None
             head_in = channels
         self.head_channels = head_in
         self.sigma_head = mlp(head_in, sigma_hidden, 1)
+        nn.init.constant_(self.sigma_head[-1].bias, SIGMA_PRIOR_LOGIT)
         self.semantic_head = mlp(head_in, semantic_hidden, NUM_CLASSES)
 
-    def forward(self, trunk: torch.Tensor, fine: torch.Tensor | None):
+    def forward(self, trunk: torch.Tensor, fine_points: tuple[torch.Tensor, torch.Tensor] | None):
         b, xc, yc, zc, _ = trunk.shape
         x = self.blocks(self.stem(trunk.permute(0, 4, 1, 2, 3)))                  # [B, Ct, Xc, Yc, Zc]
         x = x.permute(0, 2, 3, 4, 1).reshape(-1, x.shape[1])                       # [M, Ct], M = B·Xc·Yc·Zc
@@ -81,8 +87,8 @@ class VoxelDecoder(nn.Module):
         s3 = self.stride ** 3
         if self.up is not None:
             x = self.up(x).reshape(-1, self.head_channels)                         # [M·s³, Ch]
-            if self.skip is not None:
-                x = x + self.skip(fine.reshape(-1, fine.shape[-1]))
+            if fine_points is not None:
+                x = torch.index_add(x, 0, fine_points[0], fine_points[1])
             x = torch.relu(x)
         sigma = self.sigma_head(x).reshape(b, xc, yc, zc, s3)
         semantic = self.semantic_head(x).reshape(b, xc, yc, zc, s3, NUM_CLASSES)

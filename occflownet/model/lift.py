@@ -6,8 +6,8 @@ moved into the ego frame by ``cam2ego``, and falls into voxel ``floor((p - GRID.
 Points outside the grid contribute nothing (they are routed to a discarded dump row).
 
 Pooling is a scatter-add (``index_add`` → ONNX ScatterND with ``reduction="add"``, correct for repeated indices).
-The trunk grid is the full grid coarsened by ``stride``; the optional fine grid keeps full resolution in a
-*block layout* [B, X/s, Y/s, Z/s, s, s, s, F] so the decoder can combine both without transposes.
+The trunk grid is the full grid coarsened by ``stride``; the optional fine (skip) features keep full resolution
+and are addressed in *block layout* [B, X/s, Y/s, Z/s, s, s, s] so the decoder can add them without transposes.
 """
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from occflownet.config import GRID
+from occflownet.model.decoder import unblock
 
 
 class DepthContextHead(nn.Module):
@@ -66,13 +67,16 @@ def frustum_points(feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor, dept
     return origin + depths[:, None, None, None] * direction                         # [B, V, D, h, w, 3]
 
 
-def voxel_rows(points: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor, int, int]:
-    """Ego points [B, ...,3] → flat row indices into the trunk grid and the block-layout fine grid.
+def voxel_rows(points: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Ego points [B, ..., 3] → (coarse_rows, fine_rows int64 [B, ...], valid float32 [B, ...]).
 
-    Returns (coarse_rows int64 [B, ...], fine_rows int64 [B, ...], coarse_dump, fine_dump): rows of points outside
-    the grid equal the dump index (one past the last valid row) so a scatter can discard them.
+    coarse_rows index the flattened trunk grid [B·X/s·Y/s·Z/s]; fine_rows the flattened full-resolution grid in
+    block layout [B·X/s·Y/s·Z/s·s³]. Points outside the grid (or not finite) get row 0 and valid = 0, so that
+    multiplying their features by ``valid`` makes them contribute nothing.
     """
     lower = torch.tensor(GRID.lower, dtype=torch.float32, device=points.device)
+    finite = torch.all(torch.isfinite(points), dim=-1)
+    points = torch.where(finite[..., None], points, torch.full_like(points, -1e4))
     index = torch.floor((points - lower) / GRID.voxel_size).to(torch.int64)         # [B, ..., 3]
     shape = torch.tensor(GRID.shape, dtype=torch.int64, device=points.device)
     valid = torch.all((index >= 0) & (index < shape), dim=-1)                       # [B, ...]
@@ -83,26 +87,30 @@ def voxel_rows(points: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.T
     batch = torch.arange(points.shape[0], device=points.device).reshape((-1,) + (1,) * (points.dim() - 2))
     coarse_rows = ((batch * cx + coarse[..., 0]) * cy + coarse[..., 1]) * cz + coarse[..., 2]
     fine_rows = ((coarse_rows * stride + sub[..., 0]) * stride + sub[..., 1]) * stride + sub[..., 2]
-    coarse_dump = points.shape[0] * cx * cy * cz
-    fine_dump = coarse_dump * stride ** 3
-    coarse_rows = torch.where(valid, coarse_rows, torch.full_like(coarse_rows, coarse_dump))
-    fine_rows = torch.where(valid, fine_rows, torch.full_like(fine_rows, fine_dump))
-    return coarse_rows, fine_rows, coarse_dump, fine_dump
+    return coarse_rows, fine_rows, valid.to(torch.float32)
 
 
 def scatter_pool(features: torch.Tensor, rows: torch.Tensor, num_rows) -> torch.Tensor:
-    """Sum ``features`` [N, C] into ``num_rows + 1`` rows by ``rows`` [N] (row ``num_rows`` = dump, dropped)."""
-    out = features.new_zeros((num_rows + 1, features.shape[1]))
-    out = torch.index_add(out, 0, rows, features)
-    return out[:num_rows]
+    """Sum ``features`` [N, C] into a zero-initialised [num_rows, C] by ``rows`` int64 [N] (repeats add up)."""
+    return torch.index_add(features.new_zeros((num_rows, features.shape[1])), 0, rows, features)
+
+
+def fine_grid(fine_points: tuple[torch.Tensor, torch.Tensor], batch: int, stride: int) -> torch.Tensor:
+    """Dense full-resolution pooled features [B, X, Y, Z, C] from LiftSplat's (rows, features) (for inspection)."""
+    rows, feats = fine_points
+    cx, cy, cz = (n // stride for n in GRID.shape)
+    dense = scatter_pool(feats, rows, batch * cx * cy * cz * stride ** 3)
+    return unblock(dense.reshape(batch, cx, cy, cz, stride ** 3, -1), stride)
 
 
 class LiftSplat(nn.Module):
-    """Outer product of depth distribution and context, splatted into the voxel grid(s).
+    """Outer product of depth distribution and context, splatted into the voxel grid.
 
     forward(depth_prob [B, V, D, h, w], context [B, V, h, w, C], fine [B, V, h, w, F] or None,
             feature_intrinsics [B, V, 3, 3], cam2ego [B, V, 4, 4])
-    → (trunk grid [B, X/s, Y/s, Z/s, C], fine grid [B, X/s, Y/s, Z/s, s, s, s, F] or None), ego frame.
+    → (trunk grid [B, X/s, Y/s, Z/s, C] (ego frame, summed features),
+       fine points (rows int64 [N], features [N, F]) or None: the full-resolution lifted features, not yet pooled
+       (row = block-layout voxel, see :func:`voxel_rows`); the decoder scatter-adds them into its upsampled grid).
     """
 
     def __init__(self, depth_centers: list[float], stride: int):
@@ -113,14 +121,11 @@ class LiftSplat(nn.Module):
     def forward(self, depth_prob, context, fine, feature_intrinsics, cam2ego):
         b, _, _, h, w = depth_prob.shape
         points = frustum_points(feature_intrinsics, cam2ego, self.depths, h, w)
-        coarse_rows, fine_rows, coarse_dump, fine_dump = voxel_rows(points, self.stride)
-        weight = depth_prob[..., None]                                             # [B, V, D, h, w, 1]
-        s = self.stride
-        cx, cy, cz = (n // s for n in GRID.shape)
+        coarse_rows, fine_rows, valid = voxel_rows(points, self.stride)
+        weight = (depth_prob * valid)[..., None]                                   # [B, V, D, h, w, 1]
+        cx, cy, cz = (n // self.stride for n in GRID.shape)
         lifted = (weight * context[:, :, None]).reshape(-1, context.shape[-1])     # [N, C]
-        trunk = scatter_pool(lifted, coarse_rows.reshape(-1), coarse_dump).reshape(b, cx, cy, cz, -1)
+        trunk = scatter_pool(lifted, coarse_rows.reshape(-1), b * cx * cy * cz).reshape(b, cx, cy, cz, -1)
         if fine is None:
             return trunk, None
-        lifted_fine = (weight * fine[:, :, None]).reshape(-1, fine.shape[-1])
-        fine_grid = scatter_pool(lifted_fine, fine_rows.reshape(-1), fine_dump)
-        return trunk, fine_grid.reshape(b, cx, cy, cz, s, s, s, -1)
+        return trunk, (fine_rows.reshape(-1), (weight * fine[:, :, None]).reshape(-1, fine.shape[-1]))

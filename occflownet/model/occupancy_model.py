@@ -36,10 +36,10 @@ class OccupancyModel(nn.Module):
         self.cfg = cfg
         self.backbone = ResNet(cfg.backbone_block, cfg.backbone_layers, cfg.backbone_width)
         self.neck = Stride16Neck(self.backbone.out_channels, cfg.neck_channels)
-        fine = cfg.fine_channels if cfg.uses_fine_skip else 0
+        fine = cfg.head_channels if cfg.uses_fine_skip else 0
         self.depth_head = DepthContextHead(cfg.neck_channels, cfg.num_depth_bins, cfg.context_channels, fine)
         self.lift = LiftSplat(cfg.depth_bin_centers(), cfg.decoder_stride)
-        self.decoder = VoxelDecoder(cfg.context_channels, fine, cfg.decoder_stride, cfg.decoder_channels,
+        self.decoder = VoxelDecoder(cfg.context_channels, cfg.decoder_stride, cfg.decoder_channels,
                                     cfg.decoder_blocks, cfg.head_channels, cfg.sigma_hidden, cfg.semantic_hidden)
 
     # ---------------------------------------------------------------- shared trunk
@@ -71,8 +71,8 @@ class OccupancyModel(nn.Module):
         else:
             fine = None
         feature_k = scale_intrinsics_to_features(input_k, FEATURE_STRIDE)
-        trunk, fine_grid = self.lift(depth_prob, context, fine, feature_k, cam2ego)
-        sigma_logits, semantic_logits = self.decoder(trunk, fine_grid)
+        trunk, fine_points = self.lift(depth_prob, context, fine, feature_k, cam2ego)
+        sigma_logits, semantic_logits = self.decoder(trunk, fine_points)
         return sigma_logits, semantic_logits, depth_prob, feature_k
 
     # ---------------------------------------------------------------- public entry points

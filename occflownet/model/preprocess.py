@@ -68,6 +68,8 @@ def preprocess_images(images: torch.Tensor, intrinsics: torch.Tensor, input_size
     y_start, x_start, x_end, step = crop_window(height, width, input_size, subsample)
     crop = images[:, :, y_start::step, x_start:x_end:step]         # [B, V, rows, cols, 3] uint8
     rows, cols = crop.shape[2], crop.shape[3]
+    torch._check(rows > 0)  # tells torch.export the strided crop is non-empty (it always is)
+    torch._check(cols > 0)
     x = crop.reshape(b * v, rows, cols, 3).permute(0, 3, 1, 2).to(torch.float32)
     x = F.interpolate(x, size=tuple(input_size), mode="bilinear", align_corners=False, antialias=True)
     mean_t = torch.tensor(mean, dtype=torch.float32, device=images.device).reshape(1, 3, 1, 1)

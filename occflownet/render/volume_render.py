@@ -29,8 +29,8 @@ from dataclasses import dataclass
 import torch
 
 from occflownet.config import GRID, Grid
-from occflownet.render.lookup import (grid_sample_lookup, group_runs, mix_logits_runs, sample_sigma_pointwise,
-                                      sample_sigma_runs)
+from occflownet.render.fast_render import FastRender, cdf_from_sigma
+from occflownet.render.lookup import PaddedTables, grid_sample_lookup
 from occflownet.render.sampling import importance_sample, intervals_from_samples, uniform_jittered_edges
 
 LOOKUPS = ("gather", "grid_sample")
@@ -48,7 +48,8 @@ class RenderConfig:
     coarse_jitter: bool = True      # jitter the coarse bin edges (official: always, also at test time)
     fine_stratified: bool = False   # one U(0,1) offset per ray for the fine draws (official: False, mid-bin)
     uniform_mix: float = 0.0        # mix this fraction of a uniform pdf into the fine pdf (official: 0)
-    lookup: str = "gather"          # "gather" (fast flat-index) or "grid_sample" (reference)
+    lookup: str = "gather"          # "gather" (fast, hand-written backward) or "grid_sample" (reference)
+    chunk_rays: int = 1024          # rays per chunk of the fast path (memory/cache; does not change results)
     grid: Grid = GRID
 
     def __post_init__(self):
@@ -60,6 +61,8 @@ class RenderConfig:
             raise ValueError(f"RenderConfig.density_scale must be > 0, got {self.density_scale}")
         if not 0.0 <= self.uniform_mix <= 1.0:
             raise ValueError(f"RenderConfig.uniform_mix must be in [0, 1], got {self.uniform_mix}")
+        if self.chunk_rays < 1:
+            raise ValueError(f"RenderConfig.chunk_rays must be >= 1, got {self.chunk_rays}")
         if self.lookup not in LOOKUPS:
             raise ValueError(f"RenderConfig.lookup must be one of {LOOKUPS}, got {self.lookup!r}")
 
@@ -122,18 +125,6 @@ def _check_inputs(density, logits, origins, directions, batch_index, grid: Grid)
     return density, logits, batch_index
 
 
-def _fine_cdf(edges: torch.Tensor, coarse_sigma: torch.Tensor, cfg: RenderConfig) -> torch.Tensor:
-    """CDF [R, n_coarse + 1] at the coarse edges: 1 - T, optionally mixed with a uniform CDF."""
-    tau = cfg.density_scale * coarse_sigma * (edges[:, 1:] - edges[:, :-1])
-    cdf = 1.0 - torch.exp(-torch.cumsum(tau, dim=-1))
-    cdf = torch.cat([cdf.new_zeros(cdf.shape[0], 1), cdf], dim=-1)
-    if cfg.uniform_mix > 0:
-        normalised = cdf / cdf[:, -1:].clamp(min=1e-12)
-        uniform = (edges - cfg.near) / (cfg.far - cfg.near)
-        cdf = (1.0 - cfg.uniform_mix) * normalised + cfg.uniform_mix * uniform
-    return cdf
-
-
 def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor,
                 cfg: RenderConfig = RenderConfig(), generator: torch.Generator | None = None,
                 batch_index: torch.Tensor | None = None) -> RenderOutput:
@@ -149,37 +140,31 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
     dtype, device = density.dtype, density.device
     origins = origins.detach().to(dtype)
     directions = directions.detach().to(dtype)
-    density_flat = density.reshape(-1)
-    logits_flat = logits.reshape(-1, channels)
 
+    edges = uniform_jittered_edges(n_rays, cfg.n_coarse, cfg.near, cfg.far, jitter=cfg.coarse_jitter,
+                                   generator=generator, device=device, dtype=dtype)
+    if cfg.lookup == "gather":
+        tables = PaddedTables.from_volumes(density, logits, grid)
+        depth, semantics, weight_sum, weights, sigma, t_samples, t_starts, t_ends = FastRender.apply(
+            tables.sigma, tables.logits, density.detach(), origins, directions, edges, batch_index, cfg, generator)
+        return RenderOutput(depth=depth, semantics=semantics, weight_sum=weight_sum, weights=weights, sigma=sigma,
+                            t_samples=t_samples, t_starts=t_starts, t_ends=t_ends)
+
+    # Reference path: plain autograd through F.grid_sample lookups (slow on CPU; used by tests and benchmarks).
     with torch.no_grad():
-        edges = uniform_jittered_edges(n_rays, cfg.n_coarse, cfg.near, cfg.far, jitter=cfg.coarse_jitter,
-                                       generator=generator, device=device, dtype=dtype)
         mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
         points = origins[:, None, :] + mids[..., None] * directions[:, None, :]
-        if cfg.lookup == "gather":
-            coarse_sigma = sample_sigma_pointwise(density_flat, points.reshape(-1, 3),
-                                                  batch_index.repeat_interleave(cfg.n_coarse), grid)
-            coarse_sigma = coarse_sigma.view(n_rays, cfg.n_coarse)
-        else:
-            coarse_sigma = grid_sample_lookup(density.unsqueeze(-1), points, batch_index, grid)[..., 0]
-        cdf = _fine_cdf(edges, coarse_sigma, cfg)
+        coarse_sigma = grid_sample_lookup(density.unsqueeze(-1), points, batch_index, grid)[..., 0]
+        cdf = cdf_from_sigma(edges, coarse_sigma, cfg)
         t_samples = importance_sample(edges, cdf, cfg.n_fine, stratified=cfg.fine_stratified,
                                       generator=generator)
         t_starts, t_ends = intervals_from_samples(t_samples, cfg.near, cfg.far)
         points = origins[:, None, :] + t_samples[..., None] * directions[:, None, :]
-
-    if cfg.lookup == "gather":
-        runs = group_runs(points, batch_index, grid)
-        sigma = sample_sigma_runs(density_flat, runs)
-        weights, _, _ = weights_from_density(cfg.density_scale * sigma, t_starts, t_ends)
-        semantics = mix_logits_runs(logits_flat, runs, weights)
-    else:
-        volume = torch.cat([density.unsqueeze(-1), logits], dim=-1)
-        values = grid_sample_lookup(volume, points, batch_index, grid)
-        sigma = values[..., 0]
-        weights, _, _ = weights_from_density(cfg.density_scale * sigma, t_starts, t_ends)
-        semantics = torch.bmm(weights.unsqueeze(1), values[..., 1:]).squeeze(1)
+    volume = torch.cat([density.unsqueeze(-1), logits], dim=-1)
+    values = grid_sample_lookup(volume, points, batch_index, grid)
+    sigma = values[..., 0]
+    weights, _, _ = weights_from_density(cfg.density_scale * sigma, t_starts, t_ends)
+    semantics = torch.bmm(weights.unsqueeze(1), values[..., 1:]).squeeze(1)
     depth = (weights * (0.5 * (t_starts + t_ends))).sum(-1)
     return RenderOutput(depth=depth, semantics=semantics, weight_sum=weights.sum(-1), weights=weights,
                         sigma=sigma, t_samples=t_samples, t_starts=t_starts, t_ends=t_ends)

@@ -117,11 +117,3 @@ def default_attribute(kind: str, moving: bool, rng: np.random.Generator) -> str:
     if kind == "pedestrian":
         return "pedestrian.moving" if moving else "pedestrian.standing"
     return ""
-
-
-def agent_length(agent: Agent) -> float:
-    return agent.size[1]
-
-
-__all__ = ["make_agent", "default_attribute", "instance_color", "VEHICLES", "CYCLES", "agent_length",
-           "GLASS", "TYRE", "TEX_PLAIN"]

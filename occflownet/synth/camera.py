@@ -12,7 +12,7 @@ import numpy as np
 
 from occflownet.config import FREE
 from occflownet.synth.raycast import Block, box_faces, boxes_in_range, cast_blocks, ground_t
-from occflownet.synth.shading import box_color, ground_color, haze, lambert, sky_color
+from occflownet.synth.shading import box_color, ground_color, haze, lambert, shadow_raster, sky_color
 from occflownet.synth.world import Boxes, World
 
 NEAR = 0.05
@@ -110,7 +110,9 @@ def render_camera(world: World, boxes: Boxes, K: np.ndarray, cam2global: np.ndar
         cls, paint = world.ground_lookup_global(p[:, :2])
         s2g = world.scene2global
         xy_scene = (p[:, :2] - s2g[:2, 3]) @ s2g[:2, :2]
-        c = ground_color(cls, paint, xy_scene) * np.float32(0.48 + 0.55 * max(world.sun[2], 0) + 0.08)
+        light = np.full(len(g), 0.48 + 0.55 * max(world.sun[2], 0) + 0.08, np.float32)
+        light[in_shadow(world, boxes, xy_scene)] = 0.56
+        c = ground_color(cls, paint, xy_scene) * light[:, None]
         col[g] = haze(c, t[g] * norm[g])
         occ_f[g] = cls
     b = np.nonzero(ids >= 0)[0]
@@ -130,6 +132,26 @@ def render_camera(world: World, boxes: Boxes, K: np.ndarray, cam2global: np.ndar
     visible = np.bincount(id_buf[id_buf >= 0], minlength=len(boxes)).astype(np.int64)
     return CameraRender(rgb=(np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8), depth=t_buf.astype(np.float32),
                         occ=occ, box=id_buf, visible=visible, alone=alone)
+
+
+SHADOW_RES = 0.2
+
+
+def in_shadow(world: World, boxes: Boxes, xy_scene: np.ndarray) -> np.ndarray:
+    """Whether ground points at scene (x, y) [M, 2] lie in the sun shadow of ``boxes`` (global frame)."""
+    g2s = np.linalg.inv(world.scene2global)
+    sun = g2s[:3, :3] @ world.sun
+    x0, x1 = world.meta["extent_x"]
+    y0, y1 = world.meta["extent_y"]
+    shape = (int(np.ceil((x1 - x0) / SHADOW_RES)), int(np.ceil((y1 - y0) / SHADOW_RES)))
+    corners = boxes.transformed(g2s).corners()
+    raster = shadow_raster(corners, sun, x0, y0, shape, SHADOW_RES)
+    i = np.floor((xy_scene[:, 0] - x0) / SHADOW_RES).astype(np.int64)
+    j = np.floor((xy_scene[:, 1] - y0) / SHADOW_RES).astype(np.int64)
+    ok = (i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1])
+    out = np.zeros(len(i), bool)
+    out[ok] = raster[i[ok], j[ok]] > 0
+    return out
 
 
 def cast_rays(boxes: Boxes, origin: np.ndarray, dirs: np.ndarray, far: float = FAR) -> tuple[np.ndarray, np.ndarray]:

@@ -39,7 +39,7 @@ class SensorRig:
     mask_ray_angle: float = 0.008  # angular spacing [rad] of the camera rays cast for mask_camera
 
     @staticmethod
-    def default(width: int = 400, height: int = 225, **kwargs) -> "SensorRig":
+    def default(width: int = 480, height: int = 270, **kwargs) -> "SensorRig":
         K, T = calibration_arrays(default_rig(width, height))
         return SensorRig(width, height, K.astype(np.float64), T.astype(np.float64), **kwargs)
 

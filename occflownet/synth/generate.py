@@ -31,7 +31,7 @@ from occflownet.synth.writer import (Tables, calibrated_sensor_records, link, po
 
 DEFAULT_VERSION = "v1.0-trainval"
 FIRST_TIMESTAMP_US = 1533151603000000
-ANNOTATION_RANGE_M = 60.0  # agents whose centre is this close to the ego (xy) are annotated
+ANNOTATION_RANGE_M = 70.0  # agents whose centre is this close to the ego (xy) are annotated (covers the grid)
 
 
 @dataclass
@@ -65,7 +65,7 @@ def _clear(root: Path, version: str, overwrite: bool) -> None:
                 shutil.rmtree(sub)
 
 
-def generate(out, scenes: int = 1, frames: int = 6, seed: int = 0, width: int = 400, height: int = 225,
+def generate(out, scenes: int = 1, frames: int = 6, seed: int = 0, width: int = 480, height: int = 270,
              version: str = DEFAULT_VERSION, preview: bool = False, config: WorldConfig = WorldConfig(),
              rig: SensorRig | None = None, progress: bool = True, overwrite: bool = False) -> SynthResult:
     """Generate ``scenes`` scenes of ``frames`` keyframes each under ``out``. Deterministic for ``seed``."""

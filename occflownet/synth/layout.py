@@ -92,7 +92,7 @@ def build_world(config: WorldConfig, seed: int, scene_index: int, frames: int) -
     main_parking = -1 if rng.random() < 0.5 else 1
     parking[main_parking] = True  # at least one parking lane: parked agents of every kind live there
     road_edge = {s: median / 2 + n_lanes * lane_w + (2.4 if parking[s] else 0.0) for s in (-1, 1)}
-    sidewalk_w = rng.uniform(2.5, 4.5)
+    sidewalk_w = rng.uniform(3.0, 5.0)
     lot_front = {s: road_edge[s] + sidewalk_w for s in (-1, 1)}
 
     cross = rng.random() < config.cross_street_probability
@@ -141,7 +141,7 @@ def build_world(config: WorldConfig, seed: int, scene_index: int, frames: int) -
     site_x = _free_x(rng, path / 2 + rng.uniform(-15, 15), 14.0, corridor)
     for s in (-1, 1):
         x = x_min
-        while x < x_max:
+        while x < x_max - 6.0:
             length = rng.uniform(10.0, 32.0)
             if x + length > corridor[0] and x < corridor[1]:
                 x = corridor[1] + 0.5
@@ -228,12 +228,13 @@ def _lot(b: _Builder, ras: _Raster, rng, s, x0, x1, front):
             _tree(b, rng, x, s * (front + rng.uniform(3.0, 8.0)))
 
 
-def _tree(b: _Builder, rng, x, y, trunk_height=None):
-    trunk = rng.uniform(1.8, 2.8) if trunk_height is None else trunk_height
-    crown = rng.uniform(2.0, 4.0)
+def _tree(b: _Builder, rng, x, y, kerb: bool = False):
+    """A tree: trunk and crown (vegetation). Kerb trees are smaller, higher and square to the road."""
+    trunk = rng.uniform(2.2, 3.0) if kerb else rng.uniform(1.8, 2.8)
+    crown = rng.uniform(1.5, 1.9) if kerb else rng.uniform(2.0, 4.0)
     b.box("trunk", x, y, 0.0, trunk + 0.3, 0.3, 0.3)
-    b.box("vegetation", x, y, trunk, trunk + rng.uniform(2.0, 4.0), crown, crown * rng.uniform(0.8, 1.2),
-          yaw=rng.uniform(0, np.pi / 2))
+    yaw = rng.uniform(0, np.pi / 2) if kerb is False else 0.0  # kerb trees stay clear of parked trucks
+    b.box("vegetation", x, y, trunk, trunk + rng.uniform(2.0, 4.0), crown, crown * (1.0 if kerb else 1.2), yaw=yaw)
 
 
 def _street_furniture(b: _Builder, rng, s, x_min, x_max, edge, sidewalk_w, corridor):
@@ -243,16 +244,16 @@ def _street_furniture(b: _Builder, rng, s, x_min, x_max, edge, sidewalk_w, corri
     while x < x_max:
         if not blocked(x):
             if rng.random() < 0.55:
-                _tree(b, rng, x, s * (edge + 0.6), trunk_height=rng.uniform(2.2, 3.0))
+                _tree(b, rng, x, s * (edge + 1.0), kerb=True)
             elif rng.random() < 0.5:
                 b.box("pole", x, s * (edge + 0.3), 0.0, rng.uniform(5.5, 7.5), 0.2, 0.2)
         x += rng.uniform(8.0, 16.0)
     x = x_min + rng.uniform(0, 10)
     while x < x_max:
         if not blocked(x):
-            y = s * (edge + sidewalk_w - 0.45)
+            y = s * (edge + sidewalk_w - 0.5)
             if rng.random() < 0.6:
-                b.agent("pushable", x, y, rng.uniform(-np.pi, np.pi))
+                b.agent("pushable", x, y, 0.0)
             else:
                 b.box("static_other", x, y, 0.0, rng.uniform(0.8, 1.6), rng.uniform(0.5, 1.5), 0.6)
         x += rng.uniform(10.0, 30.0)
@@ -264,12 +265,16 @@ def _construction_site(b: _Builder, ras: _Raster, s, x, front, sidewalk_w):
     lo, hi = sorted((s * front, s * (front + 16.0)))
     ras.fill(ras.cls, x - 8.0, x + 8.0, lo, hi, 12)
     for bx in np.arange(x - 7.0, x + 7.5, 2.2):
-        b.agent("barrier", bx, s * (front + 0.4), 0.0)
+        if abs(bx - x) > 2.2:  # leave a gate in the middle, closed by cones
+            b.agent("barrier", bx, s * (front + 0.4), 0.0)
+    for cx in (-1.0, 0.0, 1.0):
+        b.agent("traffic_cone", x + cx, s * (front + 0.4), 0.0)
     for bx in (x - 8.0, x + 8.0):
         for d in (2.5, 5.0, 7.5):
             b.agent("barrier", bx, s * (front + d), np.pi / 2)
-    for cx in np.arange(x - 6.0, x + 6.5, 2.0):
-        b.agent("traffic_cone", cx, s * (front + 1.3), 0.0)
+    for cx in np.arange(x - 6.0, x + 6.5, 3.0):
+        if abs(cx - x) > 2.2:
+            b.agent("traffic_cone", cx, s * (front + 1.3), 0.0)
     b.agent("construction", x + rng.uniform(-1.5, 1.5), s * (front + rng.uniform(5.5, 7.0)),
             rng.uniform(-0.3, 0.3) + (0.0 if rng.random() < 0.5 else np.pi), speed=0.0)
     b.box("building", x, s * (front + 14.0), 0.0, rng.uniform(3.0, 12.0), rng.uniform(8.0, 14.0), 4.0,
@@ -290,53 +295,68 @@ def _traffic(b, rng, config, x_min, x_max, n_lanes, lane_w, median, ego_lane, eg
             ego = s < 0 and k == ego_lane
             speed = ego_speed if ego else rng.uniform(3.0, 11.0)
             travel = speed * (path / max(ego_speed, 1e-6) + 1.0)
-            x = x_min - (travel if s < 0 else 0.0) + rng.uniform(0, 15)
+            x = x_min - (travel if s < 0 else 0.0) + rng.uniform(0, 15)  # free road starts here (lower x)
             end = x_max + (travel if s > 0 else 0.0)
             while x < end:
                 kind = _vehicle_kind(rng)
-                if ego and -12.0 < x < 14.0:  # keep the ego's own lane clear around it
+                b.agent(kind, 0.0, y + rng.uniform(-0.3, 0.3), heading, speed)
+                car = b.agents[-1]
+                parts = [car]
+                if kind == "truck" and not ego and rng.random() < 0.4:  # a trailer behind (moves with it)
+                    b.agent("trailer", 0.0, y, heading, speed)
+                    parts = [b.agents[-1], car] if s < 0 else [car, b.agents[-1]]  # ordered by increasing x
+                length = sum(a.size[1] for a in parts) + 0.8 * (len(parts) - 1)
+                if ego and x < 14.0 and x + length > -12.0:  # keep the ego's own lane clear around it
+                    del b.agents[-len(parts):]
                     x = 14.0 + rng.uniform(0, 5)
                     continue
-                b.agent(kind, x, y + rng.uniform(-0.3, 0.3), heading, speed)
-                length = b.agents[-1].size[1]
-                if kind == "truck" and not ego and rng.random() < 0.4:  # a trailer behind (moves with it)
-                    b.agent("trailer", x, y, heading, speed)
-                    trailer = b.agents[-1]
-                    back = length / 2 + 0.8 + trailer.size[1] / 2
-                    trailer.origin = trailer.origin - back * np.array([np.cos(heading), np.sin(heading)])
-                    length += 0.8 + trailer.size[1]
-                x += length + rng.uniform(8.0, 40.0) / max(config.traffic, 1e-3)
+                for a in parts:
+                    a.origin[0] = x + a.size[1] / 2
+                    x += a.size[1] + 0.8
+                x += rng.uniform(8.0, 40.0) / max(config.traffic, 1e-3) - 0.8
 
 
 def _parked(b, rng, config, s, x_min, x_max, edge, path, corridor, every_kind: bool):
-    """Parked vehicles in the parking lane of side s; with ``every_kind`` the first few near the ego's path are of
-    every vehicle kind (so that every class appears near the ego in every scene)."""
-    y = s * (edge - 1.2)
+    """Parked vehicles in the parking lane of side s, filled forwards and backwards from near the middle of the
+    ego's path; with ``every_kind`` the ones nearest to it are of every vehicle kind (so that every class appears
+    near the ego in every scene)."""
+    y = s * (edge - 1.3)
     heading = 0.0 if s < 0 else np.pi
     guaranteed = ["trailer", "bus", "truck", "motorcycle", "bicycle", "car"] if every_kind else ["car", "trailer"]
     rng.shuffle(guaranteed)
-    x = path / 2 - 25.0 + rng.uniform(0, 5)
-    while x < x_max - 5:
-        kind = guaranteed.pop() if guaranteed else str(rng.choice(["car", "car", "car", "truck", "trailer"]))
-        if np.isfinite(corridor[0]) and corridor[0] - 8.0 < x < corridor[1] + 8.0:
-            x = corridor[1] + 8.0
-            continue
-        b.agent(kind, x, y, heading, 0.0)
-        b.agents[-1].origin[0] += b.agents[-1].size[1] / 2  # x was the free space's start
-        gap = rng.uniform(1.0, 4.0) if guaranteed else rng.uniform(1.0, 20.0) / max(config.traffic, 1e-3)
-        x += b.agents[-1].size[1] + gap
-    x = path / 2 - 30.0
-    while x > x_min + 5:
-        if not (np.isfinite(corridor[0]) and corridor[0] - 8.0 < x < corridor[1] + 8.0):
-            b.agent("car", x, y, heading, 0.0)
-        x -= 5.0 + rng.uniform(1.0, 20.0) / max(config.traffic, 1e-3)
+    blocked = (lambda lo, hi: np.isfinite(corridor[0]) and hi > corridor[0] - 3.0 and lo < corridor[1] + 3.0)
+    for direction in (1, -1):
+        x = path / 2 - 25.0 + (rng.uniform(0, 5) if direction > 0 else -1.0)  # the free lane's edge
+        while x_min + 5 < x < x_max - 5:
+            from_list = bool(guaranteed) and abs(x - path / 2) < 40.0
+            if from_list:
+                kind = guaranteed.pop()
+            else:
+                kind = str(rng.choice(["car", "car", "car", "truck", "trailer"])) if direction > 0 else "car"
+            b.agent(kind, 0.0, y, heading, 0.0)
+            length = b.agents[-1].size[1]
+            lo, hi = (x, x + length) if direction > 0 else (x - length, x)
+            if blocked(lo, hi):  # it does not fit before the cross street: try again behind it
+                del b.agents[-1]
+                if from_list:
+                    guaranteed.append(kind)
+                x = (corridor[1] + 3.0) if direction > 0 else (corridor[0] - 3.0)
+                continue
+            b.agents[-1].origin[0] = (lo + hi) / 2
+            gap = rng.uniform(1.0, 4.0) if guaranteed else rng.uniform(1.0, 20.0) / max(config.traffic, 1e-3)
+            x += direction * (length + gap)
 
 
 def _pedestrians(b, rng, config, s, x_min, x_max, edge, sidewalk_w, corridor):
+    """People walking along (or standing on) the sidewalk of side s; none start on top of another."""
     count = int(rng.poisson(6.0 * config.pedestrians * (x_max - x_min) / 100.0))
+    placed: list[tuple[float, float]] = []
     for _ in range(count):
         x = rng.uniform(x_min, x_max)
-        y = s * (edge + rng.uniform(1.15, max(sidewalk_w - 1.25, 1.15)))
+        y = s * (edge + rng.uniform(1.6, max(sidewalk_w - 1.25, 1.6)))
+        if any(abs(x - px) < 1.0 and abs(y - py) < 0.9 for px, py in placed):
+            continue
+        placed.append((x, y))
         moving = rng.random() < 0.8
         heading = (0.0 if rng.random() < 0.5 else np.pi) if moving else rng.uniform(-np.pi, np.pi)
         b.agent("pedestrian", x, y, heading, rng.uniform(0.8, 1.6) if moving else 0.0)

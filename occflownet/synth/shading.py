@@ -120,3 +120,22 @@ def haze(color: np.ndarray, distance: np.ndarray) -> np.ndarray:
     """Blend colours [M, 3] towards the horizon colour with distance [M] (m)."""
     f = (1.0 - np.exp(-distance / 350.0)).astype(np.float32)[:, None]
     return color * (1 - f) + SKY_HORIZON * f
+
+
+def shadow_raster(boxes_scene_corners: np.ndarray, sun_scene: np.ndarray, x0: float, y0: float, shape,
+                  res: float = 0.2) -> np.ndarray:
+    """Sun shadows of boxes on the ground (z = 0): uint8 [NX, NY], 1 where shadowed, cell (i, j) at
+    (x0 + i*res, y0 + j*res) in the scene frame. ``boxes_scene_corners`` [N, 8, 3] scene frame; ``sun_scene`` [3]
+    unit vector towards the sun. Shadows only darken the ground's colour; they are not geometry."""
+    import cv2
+
+    out = np.zeros((shape[1], shape[0]), np.uint8)  # cv2 draws (x = column, y = row): store as [NY, NX]
+    if sun_scene[2] <= 0.05 or len(boxes_scene_corners) == 0:
+        return out.T
+    c = boxes_scene_corners
+    flat = c[..., :2] - c[..., 2:3] * (sun_scene[:2] / sun_scene[2])  # follow the sun ray down to z = 0
+    pix = np.round((flat - [x0, y0]) / res * 4).astype(np.int32)  # 2 bits of sub-pixel precision
+    for poly in pix:
+        hull = cv2.convexHull(poly)
+        cv2.fillConvexPoly(out, hull, 1, lineType=cv2.LINE_8, shift=2)
+    return out.T

@@ -69,7 +69,7 @@ class Tables:
             raise ValueError(f"unknown attribute {name!r}")
         return token("attribute", name)
 
-    def write(self, version_dir: Path, map_token: str | None = None) -> None:
+    def write(self, version_dir: Path) -> None:
         version_dir.mkdir(parents=True, exist_ok=True)
         for name in TABLES:
             with open(version_dir / f"{name}.json", "w") as f:
@@ -93,39 +93,3 @@ def calibrated_sensor_records(tables: Tables, scene_key: str, intrinsics: np.nda
                                                      camera_intrinsic=[]))
     out[LIDAR] = tok
     return out
-
-
-def check_references(tables: dict[str, list[dict]], lidarseg: list[dict]) -> list[str]:
-    """Every token reference that does not resolve, as messages (empty list: all good). Used by tests."""
-    index = {name: {r["token"] for r in recs} for name, recs in tables.items()}
-    refs = {
-        "instance": [("category_token", "category"), ("first_annotation_token", "sample_annotation"),
-                     ("last_annotation_token", "sample_annotation")],
-        "calibrated_sensor": [("sensor_token", "sensor")],
-        "scene": [("log_token", "log"), ("first_sample_token", "sample"), ("last_sample_token", "sample")],
-        "sample": [("scene_token", "scene"), ("prev", "sample"), ("next", "sample")],
-        "sample_data": [("sample_token", "sample"), ("ego_pose_token", "ego_pose"),
-                        ("calibrated_sensor_token", "calibrated_sensor"), ("prev", "sample_data"),
-                        ("next", "sample_data")],
-        "sample_annotation": [("sample_token", "sample"), ("instance_token", "instance"),
-                              ("visibility_token", "visibility"), ("prev", "sample_annotation"),
-                              ("next", "sample_annotation")],
-    }
-    errors = []
-    for table, fields in refs.items():
-        for r in tables[table]:
-            for fld, target in fields:
-                v = r[fld]
-                if v == "" and fld in ("prev", "next"):
-                    continue
-                if v not in index[target]:
-                    errors.append(f"{table} {r['token']}: {fld} {v!r} not in {target}")
-    for r in tables["sample_annotation"]:
-        errors += [f"sample_annotation {r['token']}: attribute {a}" for a in r["attribute_tokens"]
-                   if a not in index["attribute"]]
-    for r in tables["map"]:
-        errors += [f"map {r['token']}: log {lg}" for lg in r["log_tokens"] if lg not in index["log"]]
-    for r in lidarseg:
-        if r["sample_data_token"] not in index["sample_data"]:
-            errors.append(f"lidarseg {r['token']}: sample_data {r['sample_data_token']}")
-    return errors

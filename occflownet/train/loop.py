@@ -75,13 +75,16 @@ def _model_config(cfg: TrainConfig, index, positions):
 def _load_flow(cfg: TrainConfig):
     if not cfg.flow:
         return None
-    from occflownet.data.flow import load_flow_records
-    from occflownet.data.index import index_dir
+    from occflownet.data.flow import flow_horizon, flow_path, load_flow_records
 
-    path = index_dir(cfg.dataroot, cfg.version) / "flow.npz"
-    if not path.is_file():
+    path = flow_path(cfg.dataroot, cfg.version)
+    covered = flow_horizon(cfg.dataroot, cfg.version)
+    if not path.is_file() or covered is None:
         raise TrainingError(f"--flow needs precomputed box flows at {path}; run `occflownet prepare "
                             f"--dataroot {cfg.dataroot}` (it writes them)")
+    if covered < cfg.horizon:
+        raise TrainingError(f"{path} covers frames up to ±{covered}, training asks for --horizon {cfg.horizon}: "
+                            f"run `occflownet prepare --dataroot {cfg.dataroot} --flow-horizon {cfg.horizon}`")
     return load_flow_records(path)
 
 

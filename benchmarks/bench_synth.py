@@ -1,0 +1,75 @@
+"""Speed of `occflownet synth` at default settings: seconds per keyframe (6 images + LiDAR + Occ3D gt + files).
+
+    python benchmarks/bench_synth.py [--scenes 1 --frames 6 --width 480 --height 270 --preview]
+
+Prints wall-clock and CPU (process) seconds per keyframe for a whole `generate` run (tables and files included),
+then a per-stage breakdown for one keyframe. CPU time is printed too because the machine may be shared.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from occflownet.config import FREE
+from occflownet.synth.camera import render_camera
+from occflownet.synth.frame import SensorRig, camera_mask, lidar_mask
+from occflownet.synth.generate import generate
+from occflownet.synth.layout import WorldConfig, build_world
+from occflownet.synth.lidar import cast_lidar
+from occflownet.synth.voxelize import voxelize
+
+
+def stage_times(width: int, height: int, seed: int, repeats: int = 3) -> dict[str, float]:
+    """Median seconds of each stage of one keyframe (geometry at one instant, all sensors)."""
+    world = build_world(WorldConfig(), seed, 0, 6)
+    rig = SensorRig.default(width, height)
+    out: dict[str, list[float]] = {}
+
+    def timed(name, fn):
+        t = time.perf_counter()
+        result = fn()
+        out.setdefault(name, []).append(time.perf_counter() - t)
+        return result
+
+    for r in range(repeats):
+        t = 0.5 * r
+        boxes = timed("geometry (boxes at t)", lambda: world.boxes_at(t))
+        ego = world.ego2global(t)
+        timed("6 camera images", lambda: [render_camera(world, boxes, rig.intrinsics[c], ego @ rig.cam2ego[c],
+                                                        width, height) for c in range(6)])
+        scan = timed("LiDAR sweep", lambda: cast_lidar(world, boxes, ego @ rig.lidar2ego, rig.lidar))
+        sem = timed("voxelise semantics", lambda: voxelize(world, boxes, ego))
+        timed("mask_lidar", lambda: lidar_mask(scan, rig.lidar2ego, sem != FREE))
+        timed("mask_camera", lambda: camera_mask(rig, sem != FREE))
+    return {k: float(np.median(v)) for k, v in out.items()}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scenes", type=int, default=1)
+    ap.add_argument("--frames", type=int, default=6)
+    ap.add_argument("--width", type=int, default=480)
+    ap.add_argument("--height", type=int, default=270)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--preview", action="store_true")
+    args = ap.parse_args(argv)
+    n = args.scenes * args.frames
+    with tempfile.TemporaryDirectory() as tmp:
+        wall, cpu = time.perf_counter(), time.process_time()
+        generate(tmp, args.scenes, args.frames, args.seed, args.width, args.height, preview=args.preview,
+                 progress=False)
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    print(f"generate: {n} keyframes at {args.width}x{args.height}{' with previews' if args.preview else ''}: "
+          f"{wall / n:.3f} s/keyframe wall, {cpu / n:.3f} s/keyframe CPU")
+    print("one keyframe by stage (median of 3):")
+    for name, sec in stage_times(args.width, args.height, args.seed).items():
+        print(f"  {name:24s} {sec:.3f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

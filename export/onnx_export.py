@@ -1,0 +1,196 @@
+"""Export an :class:`~occflownet.model.OccupancyModel` to one ONNX file (contract v1) with a parity check.
+
+Pipeline (nothing is written to ``out`` unless every step passes):
+1. ``torch.onnx.export(dynamo=True)`` of :class:`~occflownet.model.InferenceGraph` (preprocessing, backbone, lift,
+   decoder, fusion) with dynamic batch, height and width, opset 18. The dynamo exporter writes the voxel pooling
+   (``index_add``) as ``ScatterND(reduction="add")``; the TorchScript exporter's reduction-less ScatterND is wrong
+   for repeated voxel indices.
+2. Clean-up (exporter node annotations dropped), ``metadata_props`` (JSON values, keys ``METADATA_KEYS``), IR
+   version capped at ``MAX_IR_VERSION`` for onnxruntime 1.31.
+3. ``onnx.checker`` (full check), every node in the standard domain, inputs/outputs as in contract v1.
+4. onnxruntime loads it and must agree with torch on every parity sample (``parity.py``): density within 1e-4
+   absolute, occupancy equal on ≥ 99.99 % of the voxels whose σ is not within 1e-3 of τ.
+5. Temp file in the destination folder + ``os.replace``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+from occflownet import __version__
+from occflownet.config import CAMERAS, CLASS_COLORS, CLASS_NAMES, FREE, GRID
+from occflownet.model import InferenceGraph, ModelConfig, OccupancyModel
+from occflownet.rig import calibration_arrays
+
+from export.parity import ParityCase, ParitySample, check_parity, default_parity_samples
+
+OPSET = 18
+MAX_IR_VERSION = 10  # onnxruntime 1.31 reads IR <= 13; opset 18 needs IR >= 8
+INPUT_NAMES = ("images", "intrinsics", "cam2ego")
+OUTPUT_NAMES = ("occupancy", "density")
+CONTRACT = "v1"
+
+
+class ExportError(RuntimeError):
+    """Export failed (validation or parity); no file was written."""
+
+
+@dataclass
+class ExportResult:
+    path: Path
+    parity: list[ParityCase] = field(default_factory=list)
+    seconds: float = 0.0
+    metadata: dict = field(default_factory=dict)
+
+    def summary(self) -> str:
+        lines = [f"wrote {self.path} ({self.path.stat().st_size / 1e6:.1f} MB) in {self.seconds:.1f} s"]
+        lines += [f"  parity {c.describe()}" for c in self.parity]
+        return "\n".join(lines)
+
+
+def contract_metadata(cfg: ModelConfig, extra: dict | None = None) -> dict:
+    """The metadata_props of contract v1 (values are JSON-encoded when written)."""
+    calib = dict(cfg.default_calibration)
+    if "image_size" not in calib:
+        raise ExportError("the model config's default_calibration lacks 'image_size' [w, h]")
+    meta = {
+        "classes": list(CLASS_NAMES),
+        "free_index": FREE,
+        "grid": GRID.to_dict(),
+        "cameras": list(CAMERAS),
+        "class_colors": CLASS_COLORS.astype(int).tolist(),
+        "threshold": float(cfg.threshold),
+        "input_size": list(cfg.input_size),
+        "preset": cfg.preset,
+        "default_calibration": calib,
+        "occflownet_version": __version__,
+        "onnx_contract": CONTRACT,
+        "model_config": cfg.to_dict(),
+    }
+    meta.update(extra or {})
+    return meta
+
+
+def example_inputs(cfg: ModelConfig, batch: int = 2):
+    """Tracing inputs: random uint8 images at the default calibration's size, batch 2 (so B is not specialised)."""
+    w, h = cfg.default_calibration["image_size"]
+    K, T = calibration_arrays(cfg.default_calibration)
+    g = torch.Generator().manual_seed(0)
+    images = torch.randint(0, 256, (batch, len(CAMERAS), int(h), int(w), 3), dtype=torch.uint8, generator=g)
+    return (images, torch.from_numpy(K)[None].repeat(batch, 1, 1, 1),
+            torch.from_numpy(T)[None].repeat(batch, 1, 1, 1))
+
+
+def trace_to_onnx(module: torch.nn.Module, inputs: tuple, path: Path, input_names, output_names,
+                  dynamic_shapes) -> onnx.ModelProto:
+    """torch.onnx.export(dynamo=True) into ``path``, returned as a ModelProto (exporter chatter silenced)."""
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(module, inputs, str(path), dynamo=True, opset_version=OPSET, verbose=False,
+                          input_names=list(input_names), output_names=list(output_names),
+                          dynamic_shapes=dynamic_shapes, external_data=False)
+    return onnx.load(str(path))
+
+
+def finalize_proto(proto: onnx.ModelProto, metadata: dict | None) -> onnx.ModelProto:
+    """Drop exporter annotations, write metadata, cap the IR version; validate (checker + standard domain)."""
+    for node in proto.graph.node:
+        del node.metadata_props[:]
+        node.doc_string = ""
+    for vi in list(proto.graph.input) + list(proto.graph.output):
+        del vi.metadata_props[:]
+    proto.doc_string = ""
+    del proto.metadata_props[:]
+    for key, value in (metadata or {}).items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, json.dumps(value)
+    proto.ir_version = min(proto.ir_version, MAX_IR_VERSION)
+    validate_proto(proto)
+    return proto
+
+
+def validate_proto(proto: onnx.ModelProto) -> None:
+    """onnx.checker (full), standard-domain nodes only, no local functions; ExportError otherwise."""
+    try:
+        onnx.checker.check_model(proto, full_check=True)
+    except Exception as exc:
+        raise ExportError(f"onnx.checker rejected the exported graph: {exc}") from exc
+    foreign = sorted({n.domain for n in proto.graph.node if n.domain not in ("", "ai.onnx")})
+    if foreign or len(proto.functions):
+        raise ExportError(f"graph uses non-standard domains {foreign} or local functions "
+                          f"({len(proto.functions)}); contract v1 allows standard ONNX operators only")
+    if proto.ir_version > MAX_IR_VERSION:
+        raise ExportError(f"IR version {proto.ir_version} > {MAX_IR_VERSION}")
+
+
+def check_io(proto: onnx.ModelProto) -> None:
+    """Inputs/outputs exactly as contract v1 (names, element types, ranks, static dims)."""
+    u8, f32 = onnx.TensorProto.UINT8, onnx.TensorProto.FLOAT
+    want_in = {"images": (u8, [None, 6, None, None, 3]), "intrinsics": (f32, [None, 6, 3, 3]),
+               "cam2ego": (f32, [None, 6, 4, 4])}
+    want_out = {"occupancy": (u8, [None, *GRID.shape]), "density": (f32, [None, *GRID.shape])}
+    for values, want in ((proto.graph.input, want_in), (proto.graph.output, want_out)):
+        got = {v.name: v for v in values}
+        if list(got) != list(want):
+            raise ExportError(f"graph inputs/outputs {list(got)} differ from contract v1 {list(want)}")
+        for name, (etype, dims) in want.items():
+            t = got[name].type.tensor_type
+            shape = [d.dim_value if d.HasField("dim_value") else None for d in t.shape.dim]
+            if t.elem_type != etype or shape != dims:
+                raise ExportError(f"{name}: type {t.elem_type} shape {shape}, contract v1 wants {etype} {dims}")
+
+
+def export_model(model: OccupancyModel, cfg: ModelConfig, out: str | Path, *,
+                 parity_samples: list[ParitySample] | None = None, parity_frames: list | None = None,
+                 extra_metadata: dict | None = None) -> ExportResult:
+    """Export ``model`` (built from ``cfg``) to ``out``; raises ExportError (and writes nothing) on any failure.
+
+    ``parity_samples``: explicit torch-vs-onnxruntime samples; default: ``default_parity_samples(cfg,
+    parity_frames)`` (random images at two sizes and two calibrations, batch 1 and 2, plus each real frame
+    folder in ``parity_frames``).
+    """
+    t0 = time.perf_counter()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    model = model.eval()
+    if parity_samples is None:
+        parity_samples = default_parity_samples(cfg, parity_frames or [])
+    batch = torch.export.Dim("batch", min=1, max=1024)
+    height = torch.export.Dim("height", min=32, max=16384)
+    width = torch.export.Dim("width", min=32, max=16384)
+    dynamic = {"images": {0: batch, 2: height, 3: width}, "intrinsics": {0: batch}, "cam2ego": {0: batch}}
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        proto = trace_to_onnx(InferenceGraph(model).eval(), example_inputs(cfg), tmp, INPUT_NAMES, OUTPUT_NAMES,
+                              dynamic)
+        metadata = contract_metadata(cfg, extra_metadata)
+        proto = finalize_proto(proto, metadata)
+        check_io(proto)
+        onnx.save(proto, str(tmp))
+        cases = check_parity(model, tmp, parity_samples, cfg.threshold)
+        failed = [c for c in cases if not c.ok]
+        if failed:
+            raise ExportError("torch/onnxruntime parity failed, nothing written:\n  "
+                              + "\n  ".join(c.describe() for c in failed))
+        os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return ExportResult(out, cases, time.perf_counter() - t0, metadata)
+
+
+def agreement(occ_a: np.ndarray, dens_a: np.ndarray, occ_b: np.ndarray, dens_b: np.ndarray) -> dict:
+    """Agreement figures between two predictions (e.g. fp32 vs fp16/int8 variants)."""
+    return {"occupancy_equal_fraction": float(np.mean(occ_a == occ_b)),
+            "density_max_abs_diff": float(np.max(np.abs(dens_a.astype(np.float32) - dens_b.astype(np.float32))))}

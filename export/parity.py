@@ -1,0 +1,135 @@
+"""torch ↔ onnxruntime parity of an exported occupancy graph.
+
+Criteria (per sample): density max |σ_torch − σ_ort| ≤ 1e-4, and occupancy equal on ≥ 99.99 % of the voxels whose
+σ_torch is not within 1e-3 of τ (voxels at the threshold may legitimately flip).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from occflownet.config import CAMERAS
+from occflownet.geometry import rotation_z
+from occflownet.inference_io import calibration_for_images, create_session, load_calibration, load_image_folder
+from occflownet.inference_io import run_session
+from occflownet.model import ModelConfig, OccupancyModel
+from occflownet.rig import calibration_arrays, default_rig
+
+DENSITY_TOL = 1e-4
+OCCUPANCY_MIN_AGREEMENT = 0.9999
+THRESHOLD_BAND = 1e-3
+
+
+@dataclass
+class ParitySample:
+    """One batch: images uint8 [B, 6, H, W, 3], intrinsics float32 [B, 6, 3, 3], cam2ego float32 [B, 6, 4, 4]."""
+
+    name: str
+    images: np.ndarray
+    intrinsics: np.ndarray
+    cam2ego: np.ndarray
+
+
+@dataclass
+class ParityCase:
+    name: str
+    shape: tuple
+    density_max_abs_diff: float
+    occupancy_agreement: float      # over voxels with |σ − τ| > THRESHOLD_BAND
+    voxels_compared: int
+
+    @property
+    def ok(self) -> bool:
+        return self.density_max_abs_diff <= DENSITY_TOL and self.occupancy_agreement >= OCCUPANCY_MIN_AGREEMENT
+
+    def describe(self) -> str:
+        return (f"{self.name} images{list(self.shape)}: density max diff {self.density_max_abs_diff:.2e} "
+                f"(tol {DENSITY_TOL:.0e}), occupancy agreement {100 * self.occupancy_agreement:.4f}% of "
+                f"{self.voxels_compared} voxels away from tau -> {'ok' if self.ok else 'FAIL'}")
+
+
+def second_calibration(width: int, height: int) -> dict:
+    """A rig different from the default: every camera turned 30° about ego z, shifted, focal lengths × 0.85."""
+    calib = default_rig(width, height)
+    turn = rotation_z(np.radians(30.0))
+    turn[:3, 3] = (0.4, -0.3, 0.1)
+    for cam in calib["cameras"].values():
+        k = np.asarray(cam["intrinsic"])
+        k[0, 0] *= 0.85
+        k[1, 1] *= 0.85
+        cam["intrinsic"] = k.tolist()
+        cam["cam2ego"] = (turn @ np.asarray(cam["cam2ego"])).tolist()
+    return calib
+
+
+def _random_images(rng, batch: int, height: int, width: int) -> np.ndarray:
+    """Smooth-ish random images (noise + gradients), uint8 [B, 6, H, W, 3]."""
+    noise = rng.integers(0, 256, (batch, len(CAMERAS), height, width, 3), dtype=np.uint8)
+    ramp = np.linspace(0, 255, width, dtype=np.float32)[None, None, None, :, None]
+    return ((noise.astype(np.float32) * 0.5 + ramp * 0.5)).astype(np.uint8)
+
+
+def _stack(calibs: list[dict], width: int, height: int):
+    arrays = [calibration_for_images(c, width, height) for c in calibs]
+    return np.stack([a[0] for a in arrays]), np.stack([a[1] for a in arrays])
+
+
+def frame_sample(folder: str | Path, batch: int = 1) -> ParitySample:
+    """A real frame folder (six CAM_*.jpg + calib.json): batch 1 = as calibrated; batch 2 adds the same images
+    with the rig turned (a second calibration in the same batch)."""
+    folder = Path(folder)
+    images = load_image_folder(folder)
+    calib = load_calibration(folder / "calib.json")
+    h, w = images.shape[1:3]
+    K, T = calibration_for_images(calib, w, h)
+    if batch == 1:
+        return ParitySample(f"frame:{folder.name}", images[None], K[None], T[None])
+    turn = rotation_z(np.radians(-40.0)).astype(np.float32)
+    return ParitySample(f"frame:{folder.name}+turned-rig", np.stack([images, images]), np.stack([K, K]),
+                        np.stack([T, turn @ T]))
+
+
+def default_parity_samples(cfg: ModelConfig, frames: list | None = None, seed: int = 0) -> list[ParitySample]:
+    """Random images at the default calibration's size (batch 1 and 2), at 1600x900 with two different
+    calibrations in one batch, plus each real frame folder of ``frames`` (batch 1 and 2)."""
+    rng = np.random.default_rng(seed)
+    w, h = (int(v) for v in cfg.default_calibration["image_size"])
+    K, T = calibration_arrays(cfg.default_calibration)
+    samples = [
+        ParitySample(f"random-{w}x{h}-default-rig", _random_images(rng, 1, h, w), K[None], T[None]),
+        ParitySample(f"random-{w}x{h}-default-rig-b2", _random_images(rng, 2, h, w), np.stack([K, K]),
+                     np.stack([T, T])),
+    ]
+    K2, T2 = _stack([second_calibration(1600, 900), default_rig(1600, 900)], 1600, 900)
+    samples.append(ParitySample("random-1600x900-two-rigs-b2", _random_images(rng, 2, 900, 1600), K2, T2))
+    for folder in frames or []:
+        samples += [frame_sample(folder, 1), frame_sample(folder, 2)]
+    return samples
+
+
+def compare(occ_t: np.ndarray, dens_t: np.ndarray, occ_o: np.ndarray, dens_o: np.ndarray, threshold: float,
+            name: str = "", shape: tuple = ()) -> ParityCase:
+    """Parity figures between a torch prediction (reference) and an onnxruntime one."""
+    away = np.abs(dens_t - threshold) > THRESHOLD_BAND
+    n = int(away.sum())
+    agree = float(np.mean(occ_t[away] == occ_o[away])) if n else 1.0
+    diff = float(np.max(np.abs(dens_t.astype(np.float64) - dens_o.astype(np.float64))))
+    return ParityCase(name, tuple(shape), diff, agree, n)
+
+
+def check_parity(model: OccupancyModel, onnx_path: str | Path, samples: list[ParitySample],
+                 threshold: float) -> list[ParityCase]:
+    """Run every sample through torch (``model.inference``) and onnxruntime; one ParityCase per sample."""
+    session = create_session(onnx_path)
+    cases = []
+    model = model.eval()
+    for s in samples:
+        with torch.no_grad():
+            occ_t, dens_t = model.inference(torch.from_numpy(s.images), torch.from_numpy(s.intrinsics),
+                                            torch.from_numpy(s.cam2ego))
+        occ_o, dens_o = run_session(session, s.images, s.intrinsics, s.cam2ego)
+        cases.append(compare(occ_t.numpy(), dens_t.numpy(), occ_o, dens_o, threshold, s.name, s.images.shape))
+    return cases

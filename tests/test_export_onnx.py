@@ -1,0 +1,124 @@
+"""The exported tiny graph: contract v1, metadata, validity, parity (real frame, random, batch 1/2, two rigs)."""
+import json
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from exported_models import FRAME, exported_tiny, frame_available
+from export import onnx_export, parity
+from export.parity import check_parity, compare, default_parity_samples, frame_sample
+from occflownet import __version__
+from occflownet.config import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
+from occflownet.inference_io import METADATA_KEYS, create_session, read_metadata, run_session
+from occflownet.rig import calibration_arrays, default_rig
+
+
+@pytest.fixture(scope="module")
+def exported():
+    return exported_tiny()
+
+
+def test_export_reports_parity_on_every_required_case(exported):
+    _, result, _ = exported
+    names = [c.name for c in result.parity]
+    assert all(c.ok for c in result.parity), result.summary()
+    assert any("b2" in n or "+turned" in n for n in names)             # batch 2
+    assert any("two-rigs" in n for n in names)                           # two calibrations
+    if frame_available():
+        assert "frame:nuscenes-frame" in names and "frame:nuscenes-frame+turned-rig" in names
+
+
+def test_graph_is_standard_onnx_with_contract_v1_io(exported):
+    path, _, _ = exported
+    proto = onnx.load(str(path))
+    onnx.checker.check_model(proto, full_check=True)
+    assert {n.domain for n in proto.graph.node} == {""}
+    assert len(proto.functions) == 0
+    assert 8 <= proto.ir_version <= 13
+    assert [o.domain for o in proto.opset_import] == [""]
+    dims = {v.name: [d.dim_value or d.dim_param for d in v.type.tensor_type.shape.dim]
+            for v in list(proto.graph.input) + list(proto.graph.output)}
+    assert dims == {"images": ["batch", 6, "height", "width", 3], "intrinsics": ["batch", 6, 3, 3],
+                    "cam2ego": ["batch", 6, 4, 4], "occupancy": ["batch", 200, 200, 16],
+                    "density": ["batch", 200, 200, 16]}
+    types = {v.name: v.type.tensor_type.elem_type for v in list(proto.graph.input) + list(proto.graph.output)}
+    assert types["images"] == types["occupancy"] == onnx.TensorProto.UINT8
+    assert types["density"] == types["intrinsics"] == types["cam2ego"] == onnx.TensorProto.FLOAT
+    scatters = [n for n in proto.graph.node if n.op_type.startswith("Scatter")]
+    assert scatters and all(any(a.name == "reduction" and a.s == b"add" for a in n.attribute) for n in scatters)
+
+
+def test_metadata(exported):
+    path, _, model = exported
+    meta = read_metadata(create_session(path))
+    assert set(METADATA_KEYS) <= set(meta)
+    assert meta["classes"] == list(CLASS_NAMES) and meta["free_index"] == 17
+    assert meta["grid"] == GRID.to_dict() and meta["cameras"] == list(CAMERAS)
+    assert meta["class_colors"] == CLASS_COLORS.tolist()
+    assert meta["threshold"] == 0.35 and meta["input_size"] == [160, 288] and meta["preset"] == "tiny"
+    assert meta["default_calibration"] == json.loads(json.dumps(default_rig(480, 270)))
+    assert meta["default_calibration"]["image_size"] == [480, 270]
+    assert meta["occflownet_version"] == __version__ and meta["onnx_contract"] == "v1"
+    raw = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+    assert all(json.loads(raw[k]) == meta[k] for k in METADATA_KEYS)     # JSON-encoded values
+
+
+@pytest.mark.skipif(not frame_available(), reason=f"real frame not found at {FRAME}")
+def test_parity_on_the_real_frame_with_argmax_in_play(exported):
+    """Shift Φσ's output bias (same change in torch and in the ONNX initializer) so that σ straddles τ: then about
+    half the voxels are occupied and the argmax of the 17 logits is compared too, batch 1 and 2."""
+    path, _, model = exported
+    model = __import__("copy").deepcopy(model)
+    sample = frame_sample(FRAME, 2)
+    with torch.no_grad():
+        dens = model.inference(*(torch.from_numpy(a[:1]) for a in (sample.images, sample.intrinsics,
+                                                                    sample.cam2ego)))[1]
+        median = float(torch.logit(dens).median())
+        bias = model.decoder.sigma_head[-1].bias
+        bias += float(np.log(0.35 / 0.65)) - median
+    proto = onnx.load(str(path))
+    init = next(i for i in proto.graph.initializer if i.name == "model.decoder.sigma_head.2.bias")
+    init.CopyFrom(onnx.numpy_helper.from_array(bias.detach().numpy().astype(np.float32), init.name))
+    shifted = path.parent / "tiny_shifted.onnx"
+    onnx.save(proto, str(shifted))
+    cases = check_parity(model, shifted, [frame_sample(FRAME, 1), sample], model.cfg.threshold)
+    assert all(c.ok for c in cases), [c.describe() for c in cases]
+    occ, _ = run_session(create_session(shifted), sample.images, sample.intrinsics, sample.cam2ego)
+    occupied = np.mean(occ != 17)
+    assert 0.2 < occupied < 0.8 and len(np.unique(occ)) > 5
+
+
+def test_dynamic_batch_and_image_size(exported):
+    path, _, model = exported
+    session = create_session(path)
+    K, T = calibration_arrays(default_rig(200, 128))
+    rng = np.random.default_rng(3)
+    images = rng.integers(0, 256, (3, 6, 128, 200, 3), dtype=np.uint8)
+    Ks, Ts = np.stack([K] * 3), np.stack([T] * 3)
+    occ, dens = run_session(session, images, Ks, Ts)
+    assert occ.shape == (3, 200, 200, 16) and occ.dtype == np.uint8 and dens.dtype == np.float32
+    with torch.no_grad():
+        occ_t, dens_t = model.inference(torch.from_numpy(images), torch.from_numpy(Ks), torch.from_numpy(Ts))
+    case = compare(occ_t.numpy(), dens_t.numpy(), occ, dens, 0.35, "dyn", images.shape)
+    assert case.ok, case.describe()
+
+
+def test_parity_failure_writes_nothing(exported, tmp_path, monkeypatch):
+    path, _, model = exported
+    proto = onnx.load(str(path))
+    monkeypatch.setattr(onnx_export, "trace_to_onnx", lambda *a, **k: proto)   # skip re-tracing (slow)
+    monkeypatch.setattr(parity, "DENSITY_TOL", -1.0)                           # no graph can pass this
+    out = tmp_path / "model.onnx"
+    samples = default_parity_samples(model.cfg)[:1]
+    with pytest.raises(onnx_export.ExportError, match="parity failed"):
+        onnx_export.export_model(model, model.cfg, out, parity_samples=samples)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_non_standard_domain_is_rejected(exported):
+    proto = onnx.load(str(exported[0]))
+    proto.graph.node[0].domain = "com.microsoft"
+    with pytest.raises(onnx_export.ExportError):
+        onnx_export.validate_proto(proto)

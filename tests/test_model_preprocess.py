@@ -1,0 +1,70 @@
+import numpy as np
+import pytest
+import torch
+
+from occflownet.model.config import IMAGENET_MEAN, IMAGENET_STD
+from occflownet.model.preprocess import crop_window, preprocess_images, scale_intrinsics_to_features
+from occflownet.rig import calibration_arrays, default_rig
+
+INPUT = (160, 288)
+
+
+def test_crop_window_cases():
+    # 1600x900 → 288x160: window 1600x889 (bottom-aligned), every 2nd pixel, starting at the block middle
+    assert crop_window(900, 1600, INPUT) == (11, 0, 1600, 2)
+    assert crop_window(270, 480, INPUT) == (3, 0, 480, 1)            # synthetic default size: no subsampling
+    assert crop_window(200, 900, INPUT) == (0, 270, 630, 1)          # wide image: centred horizontal crop
+    assert crop_window(900, 1600, INPUT, subsample=False) == (11, 0, 1600, 1)
+
+
+def _blob_images(height, width, centres, sigma):
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float64)
+    imgs = []
+    for u, v in centres:
+        g = 250.0 * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma ** 2))
+        imgs.append(np.repeat(g[:, :, None], 3, axis=2))
+    return np.round(np.stack(imgs)).astype(np.uint8)
+
+
+@pytest.mark.parametrize("height,width", [(270, 480), (900, 1600), (1000, 1000), (200, 900)])
+def test_adjusted_intrinsics_follow_the_pixels(height, width):
+    """A blob drawn at the projection of a 3D point lands where the adjusted intrinsics project that point."""
+    K, _ = calibration_arrays(default_rig(width, height))
+    point = np.array([0.6, 0.8, 10.0])                                 # camera frame (x right, y down, z fwd)
+    uv = (K @ point)[:, :2] / (K @ point)[:, 2:]
+    sigma = 0.006 * width
+    images = _blob_images(height, width, uv, sigma)
+    x, k_in = preprocess_images(torch.from_numpy(images)[None], torch.from_numpy(K)[None], INPUT,
+                                IMAGENET_MEAN, IMAGENET_STD)
+    assert x.shape == (6, 3, *INPUT)
+    raw = (x[:, 0] * IMAGENET_STD[0] + IMAGENET_MEAN[0]).numpy()          # back to 0..255
+    yy, xx = np.mgrid[0:INPUT[0], 0:INPUT[1]]
+    k_in = k_in[0].numpy().astype(np.float64)
+    for cam in range(6):
+        w = np.clip(raw[cam], 0, None)
+        expected = (k_in[cam] @ point)[:2] / (k_in[cam] @ point)[2]
+        got = np.array([(w * xx).sum() / w.sum(), (w * yy).sum() / w.sum()])
+        assert np.abs(got - expected).max() < 0.1, (cam, got, expected)
+
+
+def test_feature_intrinsics_map_cell_centres():
+    K = torch.tensor([[[200.0, 0.0, 150.0], [0.0, 210.0, 80.0], [0.0, 0.0, 1.0]]])
+    kf = scale_intrinsics_to_features(K, 16)[0]
+    p = torch.tensor([0.3, -0.2, 4.0])
+    u_in = (K[0] @ p)[:2] / p[2]
+    u_f = (kf @ p)[:2] / p[2]
+    assert torch.allclose(u_f, (u_in + 0.5) / 16 - 0.5, atol=1e-5)   # input pixel 16j + 7.5 = feature cell j
+
+
+def test_wrong_inputs_are_rejected():
+    from occflownet.model import create_model, get_preset
+
+    m = create_model(get_preset("tiny"), seed=0)
+    K, T = calibration_arrays(default_rig(64, 64))
+    K, T = torch.from_numpy(K)[None], torch.from_numpy(T)[None]
+    with pytest.raises(ValueError, match="uint8"):
+        m(torch.zeros(1, 6, 64, 64, 3), K, T)
+    with pytest.raises(ValueError, match="images"):
+        m(torch.zeros(1, 5, 64, 64, 3, dtype=torch.uint8), K, T)
+    with pytest.raises(ValueError, match="cam2ego"):
+        m(torch.zeros(1, 6, 64, 64, 3, dtype=torch.uint8), K, T[:, :, :3])

@@ -1,0 +1,94 @@
+"""Integration: a real random-init ``tiny`` export (``occflownet export``) served over HTTP with the real frame.
+
+The server's answer must equal a plain onnxruntime run of the same file on the same frame, decoded and calibrated
+here independently of serve/ (cv2 RGB decode, occflownet.rig.calibration_arrays).
+"""
+import io
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from serve_fixtures import FRAME_DIR, real_frame_files
+from starlette.testclient import TestClient
+
+from occflownet.config import CAMERAS
+from occflownet.rig import calibration_arrays
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory):
+    if not (REPO / "export" / "onnx_export.py").is_file():
+        pytest.skip("export/onnx_export.py has not landed yet: no real model to serve")
+    if not FRAME_DIR.is_dir():
+        pytest.skip(f"shared real frame not found at {FRAME_DIR}")
+    out = tmp_path_factory.mktemp("serve-export") / "tiny.onnx"
+    proc = subprocess.run([sys.executable, "-m", "occflownet", "export", "--preset", "tiny", "--random-init",
+                           "--seed", "0", "--out", str(out)], capture_output=True, text=True, cwd=REPO, timeout=600)
+    assert proc.returncode == 0 and out.is_file(), f"export failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}"
+    return out
+
+
+def _direct_inputs():
+    images = np.stack([cv2.cvtColor(cv2.imread(str(FRAME_DIR / f"{cam}.jpg")), cv2.COLOR_BGR2RGB)
+                       for cam in CAMERAS])
+    K, T = calibration_arrays(json.loads((FRAME_DIR / "calib.json").read_text()))
+    return images, K, T
+
+
+def _direct(model: Path, images, K, T) -> tuple[np.ndarray, np.ndarray]:
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(str(model), providers=["CPUExecutionProvider"])
+    occ, density = session.run(["occupancy", "density"], {"images": images[None], "intrinsics": K[None],
+                                                          "cam2ego": T[None]})
+    assert density.shape == occ.shape and density.dtype == np.float32
+    return occ[0], density[0]
+
+
+def test_real_export_served_over_http_matches_a_direct_run(tiny_model):
+    from serve.app import create_app
+    from serve.model_runtime import ModelRuntime
+    from serve.settings import ServeSettings
+
+    images, K, T = _direct_inputs()
+    expected, _ = _direct(tiny_model, images, K, T)
+    assert expected.shape == (200, 200, 16) and expected.dtype == np.uint8 and expected.max() <= 17
+    settings = ServeSettings(model_path=str(tiny_model))
+    runtime = ModelRuntime.load(tiny_model, settings)
+    fed = []
+    real_infer = runtime.infer
+    runtime.infer = lambda *args: (fed.append(args), real_infer(*args))[1]   # record what the server feeds ORT
+    with TestClient(create_app(settings, runtime=runtime)) as client:
+        deadline = time.monotonic() + 120
+        while client.get("/readyz").status_code != 200:
+            assert time.monotonic() < deadline, client.get("/readyz").text
+            time.sleep(0.1)
+        md = client.get("/v1/metadata").json()
+        assert md["model"]["onnx_contract"] == "v1" and md["model"]["preset"] == "tiny"
+        assert md["cameras"] == list(CAMERAS) and md["free_index"] == 17 and md["grid"]["shape"] == [200, 200, 16]
+        files, calib = real_frame_files()
+        fed.clear()
+        r = client.post("/v1/occupancy", files=files | {"calibration": (None, calib)},
+                        headers={"Accept": "application/x-npy"})
+        assert r.status_code == 200, r.text
+        np.testing.assert_array_equal(np.load(io.BytesIO(r.content)), expected)
+        # a random-init model may predict one class everywhere, so also check the tensors themselves
+        (got_images, got_K, got_T), = fed
+        np.testing.assert_array_equal(got_images, images)
+        np.testing.assert_allclose(got_K, K, rtol=1e-6)
+        np.testing.assert_allclose(got_T, T, rtol=1e-6)
+        # without a calibration part the model's default calibration is used (scaled when the aspect agrees)
+        r = client.post("/v1/occupancy", files=files)
+        w, h = md["default_calibration"]["image_size"]
+        if abs((1600 / 900) / (w / h) - 1) <= 0.01:
+            assert r.status_code == 200, r.text
+            assert r.json()["shape"] == [200, 200, 16]
+        else:
+            assert r.status_code == 400 and "calibration" in r.json()["error"]["message"]
