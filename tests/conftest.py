@@ -39,3 +39,18 @@ def synth_world(synth_params):
     p = synth_params
     world = build_world(WorldConfig(margin=p["margin"]), p["seed"], 0, p["frames"])
     return world, SensorRig.default(p["width"], p["height"]), FIRST_TIMESTAMP_US
+
+
+@pytest.fixture(scope="session")
+def prepared_synth_root(synth_root, tmp_path_factory):
+    """(root Path, version) of a copy of ``synth_root`` on which ``occflownet prepare`` has run (index, class
+    counts, flow records), for tests of training and evaluation."""
+    import shutil
+
+    from occflownet.cli import main
+
+    src, version = synth_root
+    root = tmp_path_factory.mktemp("prepared") / "world"
+    shutil.copytree(src, root)
+    assert main(["prepare", "--dataroot", str(root), "--quiet"]) == 0
+    return root, version

@@ -80,15 +80,20 @@ def test_prepare_errors(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
-def test_prepare_calls_the_flow_hook(tmp_path, monkeypatch):
-    calls = []
-    fake = types.ModuleType("occflownet.data.flow")
-    fake.precompute_flow = lambda index, dataroot, progress: calls.append((len(index), str(dataroot), progress))
-    monkeypatch.setitem(sys.modules, "occflownet.data.flow", fake)
-    monkeypatch.setattr(occflownet.data, "flow", fake, raising=False)
+def test_prepare_writes_flow_records_for_every_keyframe_idempotently(tmp_path):
+    from occflownet.data.flow import flow_horizon, flow_path, load_flow_records
+
     fx = write_fixture(tmp_path / "root", write_images=False)
-    assert main(["prepare", "--dataroot", str(fx.root), "--skip-class-counts", "--quiet"]) == 0
-    assert calls == [(7, str(fx.root), False)]
+    assert main(["prepare", "--dataroot", str(fx.root), "--skip-class-counts", "--quiet", "--flow-horizon", "2"]) == 0
+    index = load_index(fx.root)
+    path = flow_path(fx.root, index.version)
+    records = load_flow_records(path)
+    assert set(records) == set(index.tokens)
+    assert flow_horizon(fx.root, index.version) == 2
+    assert all(abs(t) <= 2 for r in records.values() for t in r.offsets)
+    first = path.read_bytes()
+    assert main(["prepare", "--dataroot", str(fx.root), "--skip-class-counts", "--quiet", "--flow-horizon", "2"]) == 0
+    assert path.read_bytes() == first
     assert load_index(fx.root).class_stats is None
 
 

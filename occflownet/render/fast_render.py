@@ -53,6 +53,22 @@ def cdf_from_sigma(edges: torch.Tensor, sigma: torch.Tensor, cfg) -> torch.Tenso
 _CORNERS = torch.tensor([[0, 0, 0], [0, 0, 1], [0, 1, 0], [0, 1, 1], [1, 0, 0], [1, 0, 1], [1, 1, 0], [1, 1, 1]])
 
 
+def _shared_corner_table() -> torch.Tensor:
+    """[28, 8] long: for a step ``delta`` ∈ {-1, 0, 1}³ between consecutive cells (code = 9(dx+1) + 3(dy+1) +
+    (dz+1); code 27 = any larger step), the corner k' of the previous cell that equals corner k of the new cell,
+    or -1 when corner k is new."""
+    table = torch.full((28, 8), -1, dtype=torch.long)
+    for code in range(27):
+        delta = torch.tensor([code // 9 - 1, code // 3 % 3 - 1, code % 3 - 1])
+        e = _CORNERS + delta
+        ok = ((e >= 0) & (e <= 1)).all(-1)
+        table[code] = torch.where(ok, e[:, 0] * 4 + e[:, 1] * 2 + e[:, 2], torch.full((8,), -1))
+    return table
+
+
+_SHARED = _shared_corner_table()
+
+
 def _merge_shared_corners(run_cells: torch.Tensor, ray_of_run: torch.Tensor) -> torch.Tensor:
     """For every corner entry (run, k) → index [n_runs * 8] of the first entry of the same voxel along the ray.
 
@@ -61,16 +77,16 @@ def _merge_shared_corners(run_cells: torch.Tensor, ray_of_run: torch.Tensor) -> 
     their start by pointer jumping.
     """
     n = run_cells.shape[0]
-    corners = _CORNERS.to(device=run_cells.device, dtype=run_cells.dtype)
     entry = torch.arange(n * 8, device=run_cells.device)
     if n < 2:
         return entry
-    e = corners[None] + (run_cells[1:] - run_cells[:-1])[:, None, :]  # offsets of (r, k) seen from run r - 1
-    shared = ((e >= 0) & (e <= 1)).all(-1) & (ray_of_run[1:] == ray_of_run[:-1])[:, None]
-    k_prev = (e[..., 0] * 4 + e[..., 1] * 2 + e[..., 2]).long()
-    prev = torch.arange(n - 1, device=run_cells.device)[:, None] * 8 + k_prev
+    delta = (run_cells[1:] - run_cells[:-1]).long()
+    small = (delta.abs() <= 1).all(-1) & (ray_of_run[1:] == ray_of_run[:-1])
+    code = torch.where(small, (delta[:, 0] + 1) * 9 + (delta[:, 1] + 1) * 3 + (delta[:, 2] + 1), 27)
+    k_prev = _SHARED.to(run_cells.device).index_select(0, code)  # [n - 1, 8]
+    prev = entry[:-8].view(n - 1, 8)[:, :1] + k_prev  # entry index (r - 1) * 8 + k'
     root = entry.clone()
-    root[8:] = torch.where(shared, prev, entry[8:].view(n - 1, 8)).reshape(-1)
+    root[8:] = torch.where(k_prev >= 0, prev, entry[8:].view(n - 1, 8)).reshape(-1)
     while True:
         nxt = root.index_select(0, root)
         if torch.equal(nxt, root):
@@ -81,7 +97,8 @@ def _merge_shared_corners(run_cells: torch.Tensor, ray_of_run: torch.Tensor) -> 
 def _runs(tables: PaddedTables, points: torch.Tensor, ray_volume: torch.Tensor):
     """Fine points [r, N, 3] of one chunk → run structure (see module docstring):
     run_of_sample [S], corner rows [n_runs, 8], corner weights [S, 8], and the merged voxel entries:
-    entry_of_corner [n_runs * 8] (index into the entries), entry rows [U], entry rays [U], bag offsets [r]."""
+    entry_of_corner [n_runs * 8] (index into the entries; U for corners outside the grid), entry rows [U]
+    (rows of the unpadded logits table), entry rays [U], bag offsets [r]."""
     r, n_samples, _ = points.shape
     cell, frac = tables.cells(points)
     new_run = torch.ones((r, n_samples), dtype=torch.bool, device=points.device)
@@ -97,8 +114,14 @@ def _runs(tables: PaddedTables, points: torch.Tensor, ray_volume: torch.Tensor):
     is_entry = root == torch.arange(root.shape[0], device=root.device)
     entries = torch.nonzero(is_entry).squeeze(1)
     entry_of_corner = (torch.cumsum(is_entry, 0) - 1).index_select(0, root)
-    entry_rows = rows.reshape(-1).index_select(0, entries)
-    entry_rays = ray_of_run.index_select(0, torch.div(entries, 8, rounding_mode="floor"))
+    entry_rows = tables.logit_rows(rows.reshape(-1).index_select(0, entries))
+    keep = torch.nonzero(entry_rows >= 0).squeeze(1)  # entries outside the grid read zeros: drop them
+    renumber = torch.full_like(entries, keep.shape[0])  # dropped entries → one extra slot that stays zero
+    renumber[keep] = torch.arange(keep.shape[0], device=keep.device)
+    entry_of_corner = renumber.index_select(0, entry_of_corner)
+    entries = entries.index_select(0, keep)
+    entry_rows = entry_rows.index_select(0, keep)
+    entry_rays = ray_of_run.index_select(0, entries >> 3)
     counts = torch.bincount(entry_rays, minlength=r)
     bag_offsets = torch.cumsum(counts, 0) - counts
     return (run_of_sample, rows, corner_weights(frac.reshape(-1, 3)), entry_of_corner, entry_rows, entry_rays,
@@ -106,9 +129,9 @@ def _runs(tables: PaddedTables, points: torch.Tensor, ray_volume: torch.Tensor):
 
 
 class FastRender(torch.autograd.Function):
-    """Coarse-to-fine rendering of R rays; differentiable in the padded tables ``sigma_flat`` [V] and
-    ``logits_flat`` [V, C] (``lookup.PaddedTables`` layout); ``density`` [n, X, Y, Z] (detached) feeds the
-    coarse pass.
+    """Coarse-to-fine rendering of R rays; differentiable in the padded σ table ``sigma_flat``
+    (``lookup.PaddedTables`` layout) and the logits table ``logits_flat`` [n * X * Y * Z, C];
+    ``density`` [n, X, Y, Z] (detached) feeds the coarse pass.
 
     Outputs: depth [R], semantics [R, C], weight_sum [R] (differentiable), then weights, sigma, t_samples,
     t_starts, t_ends (all [R, N], not differentiable).
@@ -116,7 +139,7 @@ class FastRender(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, sigma_flat, logits_flat, density, origins, directions, edges, ray_volume, cfg, generator):
-        tables = PaddedTables(sigma_flat, logits_flat, cfg.grid)
+        tables = PaddedTables(sigma_flat, cfg.grid)
         n_rays, n_fine, channels = origins.shape[0], cfg.n_fine, logits_flat.shape[1]
         new = origins.new_empty
         depth, semantics, weight_sum = new(n_rays), new(n_rays, channels), new(n_rays)
@@ -139,8 +162,8 @@ class FastRender(torch.autograd.Function):
             depth[sl] = (w * (0.5 * (a + b))).sum(-1)
             weight_sum[sl] = w.sum(-1)
             corner_coeff = corner_w.new_zeros(rows.shape).index_add_(0, run_of_sample, w.reshape(-1, 1) * corner_w)
-            entry_coeff = corner_w.new_zeros(entry_rows.shape).index_add_(0, entry_of_corner,
-                                                                          corner_coeff.reshape(-1))
+            entry_coeff = corner_w.new_zeros(entry_rows.shape[0] + 1).index_add_(0, entry_of_corner,
+                                                                                 corner_coeff.reshape(-1))[:-1]
             semantics[sl] = F.embedding_bag(entry_rows, logits_flat, bag_offsets, mode="sum",
                                             per_sample_weights=entry_coeff)
             weights[sl], sigma_out[sl], t_out[sl], a_out[sl], b_out[sl] = w, sig, t, a, b
@@ -167,7 +190,7 @@ class FastRender(torch.autograd.Function):
                 continue
             w, a, b = weights[sl], a_all[sl], b_all[sl]
             q_entry = (logits_flat.index_select(0, entry_rows) * g_entry).sum(-1)  # g_sem · logits[v]
-            q = q_entry.index_select(0, entry_of_corner).view(-1, 8)
+            q = torch.cat([q_entry, q_entry.new_zeros(1)]).index_select(0, entry_of_corner).view(-1, 8)
             sem_dot = (corner_w * q.index_select(0, run_of_sample)).sum(-1).view_as(w)  # g_sem · s_i
             e = g_depth[sl, None] * (0.5 * (a + b)) + g_wsum[sl, None] + sem_dot
             ew = e * w

@@ -8,11 +8,14 @@ the 8 voxel centres around a point; a corner outside the grid contributes zero (
 ``padding_mode="zeros", align_corners=False``), so values fade to zero over the outer half voxel and are zero
 beyond it.
 
-Fast path: the volumes are copied into *padded flat tables* with one zero layer below and two above every axis
+Fast path: σ is copied into a *padded flat table* with one zero layer below and two above every axis
 (``PaddedTables``); continuous indices are clamped to [-1, size] per axis, which leaves every point inside the
 grid untouched and sends every point outside it onto zero padding. Corner rows are then ``base + offsets`` with
 no bounds checks or validity masks. Row of padded voxel (v, i, j, k), i, j, k ∈ [-1, size + 1]:
-``((v * PX + i + 1) * PY + j + 1) * PZ + k + 1`` with ``P* = size + 3``.
+``((v * PX + i + 1) * PY + j + 1) * PZ + k + 1`` with ``P* = size + 3``. The 17-channel logits are not copied
+(that would cost a 50 MB copy per call): the few corner entries that survive deduplication are mapped back to
+rows ``((v * X + i) * Y + j) * Z + k`` of the unpadded [n * X * Y * Z, C] table (``logit_rows``), and those
+outside the grid dropped.
 """
 from __future__ import annotations
 
@@ -34,25 +37,16 @@ def continuous_index(points: torch.Tensor, grid: Grid) -> torch.Tensor:
 
 @dataclass
 class PaddedTables:
-    """σ and logits of n volumes as zero-padded flat tables (see module docstring).
-
-    sigma: [n * PX * PY * PZ]; logits: [n * PX * PY * PZ, C]; both differentiable views of the inputs (the
-    padding is ``F.pad``, whose backward crops the gradient back to the grid).
-    """
+    """σ of n volumes as a zero-padded flat table [n * PX * PY * PZ] (see module docstring), differentiable
+    (the padding is ``F.pad``, whose backward crops the gradient back to the grid)."""
 
     sigma: torch.Tensor
-    logits: torch.Tensor | None
     grid: Grid
 
     @classmethod
-    def from_volumes(cls, density: torch.Tensor, logits: torch.Tensor | None, grid: Grid) -> "PaddedTables":
-        """density [n, X, Y, Z], logits [n, X, Y, Z, C] (or None: σ only)."""
-        pad = (PAD_LOW, PAD_HIGH) * 3
-        sigma = F.pad(density, pad).reshape(-1)
-        padded_logits = None
-        if logits is not None:
-            padded_logits = F.pad(logits, (0, 0) + pad).reshape(-1, logits.shape[-1])
-        return cls(sigma, padded_logits, grid)
+    def from_volumes(cls, density: torch.Tensor, grid: Grid) -> "PaddedTables":
+        """density [n, X, Y, Z]."""
+        return cls(F.pad(density, (PAD_LOW, PAD_HIGH) * 3).reshape(-1), grid)
 
     @property
     def padded_shape(self) -> tuple[int, int, int]:
@@ -78,6 +72,29 @@ class PaddedTables:
         px, py, pz = self.padded_shape
         c = cell.long() + PAD_LOW
         return ((volume * px + c[:, 0]) * py + c[:, 1]) * pz + c[:, 2]
+
+
+    def logit_rows(self, padded_rows: torch.Tensor) -> torch.Tensor:
+        """Padded rows [K] → rows [K] of the unpadded [n * X * Y * Z] table, -1 for padding voxels."""
+        return _unpadded_index(self.grid, self.sigma.shape[0], padded_rows.device).index_select(0, padded_rows)
+
+
+_UNPADDED_CACHE: dict = {}
+
+
+def _unpadded_index(grid: Grid, padded_size: int, device) -> torch.Tensor:
+    """Lookup table [n * PX * PY * PZ] (long): unpadded row of every padded voxel, -1 in the padding (cached)."""
+    key = (grid, padded_size, str(device))
+    table = _UNPADDED_CACHE.get(key)
+    if table is None:
+        nx, ny, nz = grid.shape
+        n_vol = padded_size // ((nx + PAD_LOW + PAD_HIGH) * (ny + PAD_LOW + PAD_HIGH) * (nz + PAD_LOW + PAD_HIGH))
+        rows = torch.arange(n_vol * nx * ny * nz, device=device).view(n_vol, nx, ny, nz)
+        table = F.pad(rows, (PAD_LOW, PAD_HIGH) * 3, value=-1).reshape(-1)
+        if len(_UNPADDED_CACHE) > 8:
+            _UNPADDED_CACHE.clear()
+        _UNPADDED_CACHE[key] = table
+    return table
 
 
 def corner_weights(frac: torch.Tensor) -> torch.Tensor:

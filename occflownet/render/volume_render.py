@@ -144,9 +144,10 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
     edges = uniform_jittered_edges(n_rays, cfg.n_coarse, cfg.near, cfg.far, jitter=cfg.coarse_jitter,
                                    generator=generator, device=device, dtype=dtype)
     if cfg.lookup == "gather":
-        tables = PaddedTables.from_volumes(density, logits, grid)
+        sigma_table = PaddedTables.from_volumes(density, grid).sigma
         depth, semantics, weight_sum, weights, sigma, t_samples, t_starts, t_ends = FastRender.apply(
-            tables.sigma, tables.logits, density.detach(), origins, directions, edges, batch_index, cfg, generator)
+            sigma_table, logits.reshape(-1, channels), density.detach(), origins, directions, edges, batch_index,
+            cfg, generator)
         return RenderOutput(depth=depth, semantics=semantics, weight_sum=weight_sum, weights=weights, sigma=sigma,
                             t_samples=t_samples, t_starts=t_starts, t_ends=t_ends)
 

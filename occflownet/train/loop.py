@@ -88,6 +88,24 @@ def _load_flow(cfg: TrainConfig):
     return load_flow_records(path)
 
 
+def _check_ranks_in_sync(model, info, out: Path) -> None:
+    """Gather a hash of every rank's weights; rank 0 records them in ``ddp_check.json`` and fails loudly if the
+    replicas diverged (DDP keeps them identical; a mismatch means a broken set-up, e.g. rank-dependent buffers)."""
+    import hashlib
+
+    import torch.distributed as dist
+
+    digest = hashlib.sha256()
+    for name, value in sorted(model.state_dict().items()):
+        digest.update(name.encode() + value.detach().cpu().contiguous().numpy().tobytes())
+    hashes = [None] * info.world_size
+    dist.all_gather_object(hashes, digest.hexdigest())
+    if info.is_main:
+        (out / "ddp_check.json").write_text(json.dumps({"world_size": info.world_size, "weights_sha256": hashes}))
+        if len(set(hashes)) != 1:
+            raise TrainingError(f"DDP replicas diverged: weight hashes per rank {hashes}")
+
+
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path:
     """Run (or resume) training; returns the path of the last checkpoint."""
     device = resolve_device(cfg.device)
@@ -212,6 +230,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path
     if bar is not None:
         bar.close()
     logger.close()
+    if info.enabled:
+        _check_ranks_in_sync(model, info, out)
     ddp.barrier(info)
     ddp.shutdown(info)
     return ckpt_path

@@ -1,0 +1,70 @@
+"""One training step's losses: volumes per frame (disocclusion / occupancy flow) → rendering → loss terms.
+
+Inputs come from :func:`occflownet.train.dataset.collate`; everything is in the current ego frame of each sample.
+Volume layout: per sample b, volume 0 is the prediction itself (t = 0); without flow, volume 1 serves every
+t ≠ 0 (disoccluded when that is on); with flow, every present t ≠ 0 gets its own warped copy. ``ray_volume``
+indexes the stacked [N, X, Y, Z] volumes.
+"""
+from __future__ import annotations
+
+import torch
+
+from occflownet import losses as L
+from occflownet.model.config import ModelConfig
+from occflownet.render.disocclusion import disocclude
+from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
+from occflownet.render.volume_render import RenderConfig, render_rays
+from occflownet.train.config import TrainConfig
+
+
+class LossComputer:
+    """Callable ``(model outputs, batch, device, generator) → {name: scalar tensor, "loss": total}``."""
+
+    def __init__(self, cfg: TrainConfig, model_cfg: ModelConfig, class_weights: torch.Tensor | None,
+                 render_cfg: RenderConfig | None = None):
+        self.cfg = cfg
+        self.render_cfg = render_cfg or RenderConfig()
+        self.class_weights = class_weights
+        self.depth_bins = torch.tensor(model_cfg.depth_bin_centers(), dtype=torch.float32)
+        self.loss_cfg = L.LossConfig()
+
+    def volumes(self, density: torch.Tensor, logits: torch.Tensor, batch: dict, device):
+        """Stacked per-frame volumes (density [N, X, Y, Z], logits [N, X, Y, Z, 17]) for the batch's rays."""
+        source = batch["volume_source"].to(device)
+        temporal = batch["volume_is_temporal"].to(device)
+        if self.cfg.flow:
+            parts, offsets = [], []
+            for moves, offset in batch["flow"]:
+                if moves is not None:
+                    parts.append(PackedMoves.from_arrays(**moves))
+                    offsets.append(offset)
+            if parts:
+                packed = PackedMoves.concat(parts, offsets).to(device)
+                return warp_volumes(density, logits, source, packed, mover=self.cfg.flow_mover)
+            return density[source], logits[source]
+        dens = density[source]
+        if self.cfg.disocclusion and bool(temporal.any()):
+            dens = torch.where(temporal[:, None, None, None], disocclude(dens, logits[source]), dens)
+        return dens, logits[source]
+
+    def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None) -> dict:
+        cfg = self.cfg
+        density, logits = outputs["density"].float(), outputs["logits"].float()
+        terms: dict[str, torch.Tensor] = {}
+        if cfg.uses_2d:
+            dens, logi = self.volumes(density, logits, batch, device)
+            rendered = render_rays(dens, logi, batch["ray_origins"].to(device), batch["ray_directions"].to(device),
+                                   self.render_cfg, generator=generator, batch_index=batch["ray_volume"].to(device))
+            weights = self.class_weights.to(device) if self.class_weights is not None else None
+            labels = batch["ray_labels"].to(device)
+            terms.update(L.ray_losses(rendered, batch["ray_depths"].to(device), labels, weights, self.loss_cfg,
+                                      depth=cfg.depth_loss))
+            if cfg.depth_loss:
+                terms["lidar_depth"] = self.loss_cfg.lidar_depth_weight * L.lidar_depth_loss(
+                    outputs["depth_prob"].float(), outputs["feature_intrinsics"], batch["cam2ego"].to(device),
+                    [p.to(device) for p in batch["depth_points"]], self.depth_bins.to(device))
+        if cfg.uses_3d:
+            terms.update(L.voxel_losses(density, logits, batch["occ_semantics"].to(device),
+                                        batch["occ_mask"].to(device), self.loss_cfg))
+        terms["loss"] = sum(terms.values())
+        return terms

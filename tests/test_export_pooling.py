@@ -1,0 +1,100 @@
+"""The voxel pooling stage exported alone: scatter-add with repeated indices, and the 90° rig-rotation geometry.
+
+The TorchScript exporter's known bug (index_add → ScatterND *without* reduction) keeps only one of the repeated
+updates per voxel; ``test_pooling_with_many_points_per_voxel`` fails on such a graph (checked below by removing the
+reduction attribute).
+"""
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from export.onnx_export import trace_to_onnx
+from occflownet.model.lift import LiftSplat, fine_grid
+from test_model_lift import _rig, assert_rotated
+
+H, W = 6, 10
+
+
+class PoolingStage(torch.nn.Module):
+    """depth_prob [1, 6, D, h, w], context [1, 6, h, w, C], intrinsics, cam2ego → (trunk grid, dense fine grid)."""
+
+    def __init__(self, depths, stride):
+        super().__init__()
+        self.lift = LiftSplat(depths, stride)
+
+    def forward(self, depth_prob, context, feature_intrinsics, cam2ego):
+        trunk, fine_points = self.lift(depth_prob, context, context, feature_intrinsics, cam2ego)
+        return trunk, fine_grid(fine_points, depth_prob.shape[0], self.lift.stride)
+
+
+def _inputs(depths, seed=0):
+    K, T = _rig(H, W)
+    T[..., :3, 3] += torch.tensor([0.013, 0.007, 0.0])       # no frustum point exactly on a voxel face
+    g = torch.Generator().manual_seed(seed)
+    depth_prob = torch.softmax(2 * torch.randn(1, 6, len(depths), H, W, generator=g), 2)
+    context = torch.rand(1, 6, H, W, 3, generator=g)
+    return depth_prob, context, K, T
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    # depth bins 1 cm apart: every pixel's 16 frustum points share a voxel, neighbouring pixels often too
+    depths = [6.0 + 0.01 * i for i in range(16)]
+    module = PoolingStage(depths, stride=2).eval()
+    path = tmp_path_factory.mktemp("pool") / "pool.onnx"
+    names = ["depth_prob", "context", "feature_intrinsics", "cam2ego"]
+    proto = trace_to_onnx(module, _inputs(depths), path, names, ["trunk", "fine"], None)
+    return module, depths, proto
+
+
+def _run(proto, inputs):
+    session = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    names = [i.name for i in session.get_inputs()]
+    return session.run(None, {n: t.numpy() for n, t in zip(names, inputs)})
+
+
+def test_pooling_with_many_points_per_voxel(exported):
+    module, depths, proto = exported
+    inputs = _inputs(depths, seed=1)
+    rows = module.lift(inputs[0], inputs[1], None, inputs[2], inputs[3])[0]
+    occupied = (rows.abs().sum(-1) > 0).sum().item()
+    assert 6 * H * W * len(depths) > 10 * occupied            # heavy repetition: > 10 points per used voxel
+    with torch.no_grad():
+        trunk_t, fine_t = module(*inputs)
+    trunk_o, fine_o = _run(proto, inputs)
+    assert np.allclose(trunk_o, trunk_t.numpy(), atol=1e-5) and np.allclose(fine_o, fine_t.numpy(), atol=1e-5)
+    assert trunk_o.sum() == pytest.approx(float(trunk_t.sum()), rel=1e-5)
+
+
+def test_the_repeated_index_check_catches_a_scatter_without_reduction(exported):
+    """Sanity check of the test above: the same graph with ScatterND's reduction removed loses updates."""
+    module, depths, proto = exported
+    broken = onnx.ModelProto()
+    broken.CopyFrom(proto)
+    scatters = [n for n in broken.graph.node if n.op_type == "ScatterND"]
+    assert scatters
+    for node in scatters:
+        assert [a.s for a in node.attribute if a.name == "reduction"] == [b"add"]
+        kept = [a for a in node.attribute if a.name != "reduction"]
+        del node.attribute[:]
+        node.attribute.extend(kept)
+    inputs = _inputs(depths, seed=1)
+    with torch.no_grad():
+        trunk_t, _ = module(*inputs)
+    trunk_o, _ = _run(broken, inputs)
+    assert not np.allclose(trunk_o, trunk_t.numpy(), atol=1e-3)
+
+
+def test_turning_the_rig_turns_the_exported_pooling(exported):
+    module, depths, proto = exported
+    depth_prob, context, K, T = _inputs(depths, seed=2)
+    turn = torch.eye(4)
+    turn[:2, :2] = torch.tensor([[0.0, -1.0], [1.0, 0.0]])
+    _, fine = _run(proto, (depth_prob, context, K, T))
+    _, fine_turned = _run(proto, (depth_prob, context, K, turn @ T))
+    assert_rotated(torch.from_numpy(fine), torch.from_numpy(fine_turned))
+    with torch.no_grad():
+        assert torch.allclose(module(depth_prob, context, K, turn @ T)[1], torch.from_numpy(fine_turned),
+                              atol=1e-5)
