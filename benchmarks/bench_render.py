@@ -117,7 +117,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rays", type=int, default=32768)
     ap.add_argument("--repeats", type=int, default=2, help="timed runs per method (best is reported)")
+    ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
     args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     cfg = RenderConfig()
     density, logits, origins, directions, what = load_scene(args.rays, np.random.default_rng(0))
     density.requires_grad_(True)

@@ -49,6 +49,20 @@ def _pip(python: Path, *args: str, timeout: int = 1500) -> None:
         raise AssertionError(f"pip install {' '.join(args)} failed:\n{output[-3000:]}")
 
 
+def _remove_stale_venvs(keep: Path) -> None:
+    """Delete venvs of older pyproject versions (~300 MB each) that no run is using (their lock is free)."""
+    for other in CACHE.glob("serve-venv-*"):
+        if other == keep or not other.is_dir():
+            continue
+        with open(f"{other}.lock", "w") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                continue
+            shutil.rmtree(other, ignore_errors=True)
+        Path(f"{other}.lock").unlink(missing_ok=True)
+
+
 @pytest.fixture(scope="module")
 def serve_venv(tmp_path_factory) -> Path:
     key = hashlib.sha256((REPO / "pyproject.toml").read_bytes()).hexdigest()[:12]
@@ -59,6 +73,7 @@ def serve_venv(tmp_path_factory) -> Path:
     with open(CACHE / f"serve-venv-{key}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)   # concurrent test runs share one venv
         if not (venv / ".deps-installed").exists():
+            _remove_stale_venvs(keep=venv)
             shutil.rmtree(venv, ignore_errors=True)
             subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
             _pip(python, "--upgrade", "pip", "setuptools>=68")
