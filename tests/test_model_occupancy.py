@@ -16,7 +16,14 @@ def _inputs(batch=1, width=160, height=90, seed=0):
 
 @pytest.fixture(scope="module")
 def tiny():
-    return create_model(get_preset("tiny"), seed=0).eval()
+    """Random-init tiny with Φσ's bias shifted so that σ straddles τ (about half the voxels occupied) and Φs's
+    output bias zeroed so that the argmax varies."""
+    model = create_model(get_preset("tiny"), seed=0).eval()
+    with torch.no_grad():
+        median = torch.logit(model.inference(*_inputs())[1]).median()
+        model.decoder.sigma_head[-1].bias += torch.logit(torch.tensor(0.35)) - median
+        model.decoder.semantic_head[-1].bias.zero_()
+    return model
 
 
 def test_forward_outputs_follow_the_contract(tiny):
@@ -37,8 +44,9 @@ def test_forward_outputs_follow_the_contract(tiny):
         preprocess_images(images, K, cfg.input_size, cfg.image_mean, cfg.image_std)[1], 16)
     assert torch.equal(out["feature_intrinsics"], expected_k)
     assert torch.equal(out["occupancy"], fuse_occupancy(d, out["logits"], cfg.threshold))
-    occ, dens = tiny.inference(images, K, T)
-    assert torch.equal(occ, out["occupancy"]) and torch.equal(dens, d)
+    occ, dens = tiny.inference(images, K, T)                  # Φs only where σ ≥ τ: same fused result
+    assert torch.equal(dens, d) and torch.equal(occ, out["occupancy"])
+    assert 0.2 < (occ != FREE).float().mean() < 0.8 and len(occ.unique()) >= 3
 
 
 def test_fusion_rule():

@@ -45,7 +45,7 @@ def test_train_2d_reduces_the_loss_and_writes_a_usable_checkpoint(prepared_synth
     assert main(_train_argv(root, out, "--max-steps", "12", "--horizon", "1")) == 0
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log] == list(range(1, 13))
-    assert {"loss", "depth", "semantic", "lidar_depth", "rays_per_s", "lr"} <= set(log[0])
+    assert {"loss", "render_depth", "render_semantics", "lidar_depth", "rays_per_s", "lr"} <= set(log[0])
     first, last = np.mean([r["loss"] for r in log[:3]]), np.mean([r["loss"] for r in log[-3:]])
     assert last < first, (first, last)
     from occflownet.model.checkpoint import load_checkpoint

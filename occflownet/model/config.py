@@ -55,7 +55,7 @@ class ModelConfig:
     decoder_stride: int = 4                        # 1, 2, 4 or 8: the trunk's grid is GRID.shape / stride
     decoder_channels: int = 32
     decoder_blocks: int = 1                        # 3D residual blocks (conv3x3x3-BN-ReLU-conv3x3x3-BN + skip)
-    head_channels: int = 16                        # per-voxel feature width after upsampling (stride > 1)
+    head_channels: int = 8                         # per-voxel feature width after upsampling (stride > 1)
     sigma_hidden: tuple[int, ...] = (16,)          # hidden layers of the density MLP Φσ
     semantic_hidden: tuple[int, ...] = (16,)       # hidden layers of the semantic MLP Φs
     # --- fusion ---

@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from occflownet.config import NUM_CLASSES
+from occflownet.config import FREE, NUM_CLASSES
 
 # Initial bias of Φσ's output: σ starts near sigmoid(-2.2) ≈ 0.1 (most of space is free), so freshly initialised
 # models render rays that travel into the scene instead of stopping in the first voxels.
@@ -79,17 +79,38 @@ class VoxelDecoder(nn.Module):
         nn.init.constant_(self.sigma_head[-1].bias, SIGMA_PRIOR_LOGIT)
         self.semantic_head = mlp(head_in, semantic_hidden, NUM_CLASSES)
 
-    def forward(self, trunk: torch.Tensor, fine_points: tuple[torch.Tensor, torch.Tensor] | None):
-        b, xc, yc, zc, _ = trunk.shape
+    def voxel_features(self, trunk: torch.Tensor, fine_points: tuple[torch.Tensor, torch.Tensor] | None):
+        """Head input features [B·Xc·Yc·Zc·s³, head_channels], rows in block layout order."""
         x = self.blocks(self.stem(trunk.permute(0, 4, 1, 2, 3)))                  # [B, Ct, Xc, Yc, Zc]
         x = x.permute(0, 2, 3, 4, 1).reshape(-1, x.shape[1])                       # [M, Ct], M = B·Xc·Yc·Zc
         # the per-voxel layers run on 2-D [rows, channels] tensors: onnxruntime then fuses bias and ReLU (Gemm)
-        s3 = self.stride ** 3
         if self.up is not None:
             x = self.up(x).reshape(-1, self.head_channels)                         # [M·s³, Ch]
             if fine_points is not None:
                 x = torch.index_add(x, 0, fine_points[0], fine_points[1])
             x = torch.relu(x)
+        return x
+
+    def forward(self, trunk: torch.Tensor, fine_points: tuple[torch.Tensor, torch.Tensor] | None):
+        b, xc, yc, zc, _ = trunk.shape
+        s3 = self.stride ** 3
+        x = self.voxel_features(trunk, fine_points)
         sigma = self.sigma_head(x).reshape(b, xc, yc, zc, s3)
         semantic = self.semantic_head(x).reshape(b, xc, yc, zc, s3, NUM_CLASSES)
         return sigma, semantic
+
+    def fused_occupancy(self, trunk: torch.Tensor, fine_points, threshold: float):
+        """Inference: (occupancy uint8, density) [B, Xc, Yc, Zc, s³], Φs evaluated only where σ ≥ threshold.
+
+        Equals fusing :meth:`forward`'s outputs (argmax where σ ≥ τ else free) but skips the semantic MLP on free
+        voxels (the gather/scatter export as NonZero/GatherND/ScatterND; occupied voxels are unique, no reduction).
+        """
+        b, xc, yc, zc, _ = trunk.shape
+        x = self.voxel_features(trunk, fine_points)
+        density = torch.sigmoid(self.sigma_head(x)).reshape(-1)                    # [B·Xc·Yc·Zc·s³]
+        occupied = torch.nonzero(density >= threshold).reshape(-1)
+        labels = torch.argmax(self.semantic_head(x[occupied]), dim=-1).to(torch.uint8)
+        occupancy = torch.full(density.shape, FREE, dtype=torch.uint8, device=x.device)
+        occupancy = occupancy.index_put((occupied,), labels)
+        shape = (b, xc, yc, zc, self.stride ** 3)
+        return occupancy.reshape(shape), density.reshape(shape)

@@ -53,9 +53,8 @@ class OccupancyModel(nn.Module):
             raise ValueError(f"cam2ego must be [B, 6, 4, 4], got {tuple(cam2ego.shape)}")
         return intrinsics.to(torch.float32), cam2ego.to(torch.float32)
 
-    def _encode(self, images, intrinsics, cam2ego):
-        """→ (σ logits [B,Xc,Yc,Zc,s³], semantic logits [B,Xc,Yc,Zc,s³,17] (block layout),
-        depth_prob [B, 6, D, h, w], feature_intrinsics [B, 6, 3, 3])."""
+    def _lift(self, images, intrinsics, cam2ego):
+        """→ (trunk grid, fine points, depth_prob [B, 6, D, h, w], feature_intrinsics [B, 6, 3, 3])."""
         intrinsics, cam2ego = self._check_inputs(images, intrinsics, cam2ego)
         cfg = self.cfg
         b = images.shape[0]
@@ -72,8 +71,7 @@ class OccupancyModel(nn.Module):
             fine = None
         feature_k = scale_intrinsics_to_features(input_k, FEATURE_STRIDE)
         trunk, fine_points = self.lift(depth_prob, context, fine, feature_k, cam2ego)
-        sigma_logits, semantic_logits = self.decoder(trunk, fine_points)
-        return sigma_logits, semantic_logits, depth_prob, feature_k
+        return trunk, fine_points, depth_prob, feature_k
 
     # ---------------------------------------------------------------- public entry points
     def forward(self, images: torch.Tensor, intrinsics: torch.Tensor, cam2ego: torch.Tensor) -> dict:
@@ -82,7 +80,8 @@ class OccupancyModel(nn.Module):
         depth_prob float [B, 6, D, h, w] (softmax over D, z-depth bins ``cfg.depth_bin_centers()``);
         feature_intrinsics float [B, 6, 3, 3] (camera frame → feature-map pixel coordinates);
         occupancy uint8 [B, 200, 200, 16] (fused with τ = cfg.threshold)."""
-        sigma_logits, semantic_logits, depth_prob, feature_k = self._encode(images, intrinsics, cam2ego)
+        trunk, fine_points, depth_prob, feature_k = self._lift(images, intrinsics, cam2ego)
+        sigma_logits, semantic_logits = self.decoder(trunk, fine_points)           # block layout
         s = self.cfg.decoder_stride
         density = unblock(torch.sigmoid(sigma_logits), s)
         logits = unblock(semantic_logits, s)
@@ -94,11 +93,11 @@ class OccupancyModel(nn.Module):
     def inference(self, images: torch.Tensor, intrinsics: torch.Tensor, cam2ego: torch.Tensor):
         """The exported path: → (occupancy uint8 [B, 200, 200, 16], density float32 [B, 200, 200, 16]).
 
-        Fuses in block layout so only the two small outputs are rearranged (the logits never are)."""
-        sigma_logits, semantic_logits, _, _ = self._encode(images, intrinsics, cam2ego)
+        Same result as fusing :meth:`forward`'s outputs, but Φs runs only on voxels with σ ≥ τ and the fusion
+        happens in block layout, so only the two small outputs are rearranged."""
+        trunk, fine_points, _, _ = self._lift(images, intrinsics, cam2ego)
+        occupancy, density = self.decoder.fused_occupancy(trunk, fine_points, self.cfg.threshold)
         s = self.cfg.decoder_stride
-        density = torch.sigmoid(sigma_logits)
-        occupancy = fuse_occupancy(density, semantic_logits, self.cfg.threshold)
         return unblock(occupancy, s), unblock(density, s)
 
 

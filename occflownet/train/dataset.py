@@ -78,11 +78,12 @@ class TrainingSamples(Dataset):
                 "ray_origins": torch.from_numpy(rays.origins), "ray_directions": torch.from_numpy(rays.directions),
                 "ray_depths": torch.from_numpy(rays.depths), "ray_labels": torch.from_numpy(rays.labels.astype(np.int64)),
                 "ray_volume": torch.from_numpy(volume), "num_volumes": len(frames),
-                "depth_points": torch.from_numpy(self._depth_points(position, rng)),
             })
             if self.cfg.flow:
                 record = self.flow_records.get(sample.token)
                 item["flow"] = flow_moves(record, frames) if record is not None else None
+        if self.cfg.depth_loss:
+            item["depth_points"] = torch.from_numpy(self._depth_points(position, rng))
         if self.cfg.uses_3d:
             if sample.occupancy_path is None:
                 raise FileNotFoundError(f"sample {sample.token} has no Occ3D labels (gts/) but 3D supervision is on")
@@ -108,6 +109,8 @@ def collate(items: list[dict]) -> dict:
     for key in ("images", "intrinsics", "cam2ego", "occ_semantics", "occ_mask"):
         if key in items[0]:
             out[key] = torch.stack([it[key] for it in items])
+    if "depth_points" in items[0]:
+        out["depth_points"] = [it["depth_points"] for it in items]
     if "ray_origins" in items[0]:
         offsets = np.cumsum([0] + [it["num_volumes"] for it in items[:-1]])
         for key in ("ray_origins", "ray_directions", "ray_depths", "ray_labels"):
@@ -116,7 +119,6 @@ def collate(items: list[dict]) -> dict:
         out["volume_source"] = torch.cat([torch.full((it["num_volumes"],), b, dtype=torch.long)
                                           for b, it in enumerate(items)])
         out["volume_is_temporal"] = torch.cat([torch.arange(it["num_volumes"]) > 0 for it in items])
-        out["depth_points"] = [it["depth_points"] for it in items]
         if "flow" in items[0]:
             out["flow"] = [(it["flow"], int(o)) for it, o in zip(items, offsets)]
     return out

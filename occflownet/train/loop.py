@@ -158,7 +158,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path
     net = model
     if info.enabled:
         net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
-                                      find_unused_parameters=not (cfg.uses_2d and cfg.depth_loss))
+                                      find_unused_parameters=not cfg.depth_loss)
     dataset = TrainingSamples(cfg.dataroot, index, positions, cfg, flow_records)
     sampler = StepBatchSampler(len(positions), cfg.batch_size, cfg.seed, start_step, cfg.max_steps,
                                info.rank, info.world_size)
@@ -196,7 +196,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path
         loss = terms["loss"]
         if not torch.isfinite(loss):
             good = f"last good checkpoint: {ckpt_path}" if ckpt_path.is_file() else "no checkpoint was written yet"
-            raise TrainingError(f"loss is {loss.item()} at step {step} ({ {k: float(v) for k, v in terms.items()} }); "
+            raise TrainingError(f"loss is {loss.item()} at step {step} ({ {k: float(v.detach()) for k, v in terms.items()} }); "
                                 f"stopping; {good}")
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -208,7 +208,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path
         rays_since_log += int(batch["ray_depths"].numel()) if "ray_depths" in batch else 0
         if info.is_main and (step % cfg.log_every == 0 or step == cfg.max_steps):
             now = time.monotonic()
-            record = {k: float(v) for k, v in terms.items()}
+            record = {k: float(v.detach()) for k, v in terms.items()}
             record.update(lr=scheduler.get_last_lr()[0], grad_norm=float(grad_norm),
                           rays_per_s=rays_since_log * info.world_size / max(now - t_log, 1e-9))
             logger.log(step, record)

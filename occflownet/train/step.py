@@ -26,7 +26,8 @@ class LossComputer:
         self.render_cfg = render_cfg or RenderConfig()
         self.class_weights = class_weights
         self.depth_bins = torch.tensor(model_cfg.depth_bin_centers(), dtype=torch.float32)
-        self.loss_cfg = L.LossConfig()
+        self.loss_cfg = L.LossConfig(mode=cfg.supervision, depth_weight=0.05 if cfg.depth_loss else 0.0,
+                                     lidar_depth_weight=0.05 if cfg.depth_loss else 0.0)
 
     def volumes(self, density: torch.Tensor, logits: torch.Tensor, batch: dict, device):
         """Stacked per-frame volumes (density [N, X, Y, Z], logits [N, X, Y, Z, 17]) for the batch's rays."""
@@ -50,21 +51,22 @@ class LossComputer:
     def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None) -> dict:
         cfg = self.cfg
         density, logits = outputs["density"].float(), outputs["logits"].float()
-        terms: dict[str, torch.Tensor] = {}
+        inputs: dict = {}
         if cfg.uses_2d:
             dens, logi = self.volumes(density, logits, batch, device)
-            rendered = render_rays(dens, logi, batch["ray_origins"].to(device), batch["ray_directions"].to(device),
-                                   self.render_cfg, generator=generator, batch_index=batch["ray_volume"].to(device))
-            weights = self.class_weights.to(device) if self.class_weights is not None else None
-            labels = batch["ray_labels"].to(device)
-            terms.update(L.ray_losses(rendered, batch["ray_depths"].to(device), labels, weights, self.loss_cfg,
-                                      depth=cfg.depth_loss))
-            if cfg.depth_loss:
-                terms["lidar_depth"] = self.loss_cfg.lidar_depth_weight * L.lidar_depth_loss(
-                    outputs["depth_prob"].float(), outputs["feature_intrinsics"], batch["cam2ego"].to(device),
-                    [p.to(device) for p in batch["depth_points"]], self.depth_bins.to(device))
+            inputs.update(
+                rendered=render_rays(dens, logi, batch["ray_origins"].to(device), batch["ray_directions"].to(device),
+                                     self.render_cfg, generator=generator,
+                                     batch_index=batch["ray_volume"].to(device)),
+                depth_gt=batch["ray_depths"].to(device), labels_gt=batch["ray_labels"].to(device),
+                class_weights=None if self.class_weights is None else self.class_weights.to(device))
+        if cfg.depth_loss:
+            inputs.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"],
+                          cam2ego=batch["cam2ego"].to(device), points_ego=[p.to(device) for p in batch["depth_points"]],
+                          depth_bin_centers=self.depth_bins.to(device))
         if cfg.uses_3d:
-            terms.update(L.voxel_losses(density, logits, batch["occ_semantics"].to(device),
-                                        batch["occ_mask"].to(device), self.loss_cfg))
-        terms["loss"] = sum(terms.values())
+            inputs.update(density=density, logits=logits, semantics_gt=batch["occ_semantics"].to(device),
+                          voxel_mask=batch["occ_mask"].to(device))
+        terms = L.total_loss(self.loss_cfg, **inputs)
+        terms["loss"] = terms.pop("total")
         return terms

@@ -1,0 +1,134 @@
+"""`occflownet predict`: the torch-free ONNX path, the torch paths, their agreement, outputs and errors."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from exported_models import FRAME, SEED, exported_tiny, frame_available
+from export.parity import compare
+from occflownet.cli import main
+from occflownet.config import CLASS_COLORS, GRID
+from occflownet.inference_io import bev_image, calibration_for_images, load_image_folder
+from occflownet.rig import calibration_arrays, default_rig
+
+needs_frame = pytest.mark.skipif(not frame_available(), reason=f"real frame not found at {FRAME}")
+
+
+@pytest.fixture(scope="module")
+def onnx_prediction(tmp_path_factory):
+    """`predict --model` on the real frame in a fresh interpreter that must never import torch."""
+    if not frame_available():
+        pytest.skip(f"real frame not found at {FRAME}")
+    path = exported_tiny()[0]
+    out = tmp_path_factory.mktemp("predict")
+    code = ("import sys; from occflownet.cli import main; "
+            f"rc = main(['predict', '--model', {str(path)!r}, '--images', {str(FRAME)!r}, "
+            f"'--calib', {str(FRAME / 'calib.json')!r}, '--out', {str(out / 'grid.npz')!r}, "
+            f"'--png', {str(out / 'bev.png')!r}]); "
+            "assert 'torch' not in sys.modules, 'predict --model imported torch'; sys.exit(rc)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "occupied voxels" in proc.stdout
+    return out
+
+
+def test_model_path_writes_grid_and_png_without_torch(onnx_prediction):
+    import cv2
+
+    grid = np.load(onnx_prediction / "grid.npz")
+    assert grid["occupancy"].shape == GRID.shape and grid["occupancy"].dtype == np.uint8
+    assert grid["density"].shape == GRID.shape and grid["density"].dtype == np.float32
+    png = cv2.imread(str(onnx_prediction / "bev.png"))
+    assert png.shape == (400, 400, 3)
+
+
+@needs_frame
+def test_random_init_torch_and_onnx_agree_on_the_real_frame(onnx_prediction, tmp_path, capsys):
+    out = tmp_path / "torch.npz"
+    rc = main(["predict", "--preset", "tiny", "--random-init", "--seed", str(SEED), "--images", str(FRAME),
+               "--calib", str(FRAME / "calib.json"), "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    a, b = np.load(out), np.load(onnx_prediction / "grid.npz")
+    case = compare(a["occupancy"], a["density"], b["occupancy"], b["density"], 0.35, "cli", ())
+    assert case.ok, case.describe()
+
+
+@needs_frame
+def test_checkpoint_path_matches_the_seeded_preset(tmp_path):
+    from occflownet.model import save_checkpoint
+
+    model = exported_tiny()[2]
+    ckpt = save_checkpoint(tmp_path / "m.pt", model, model.cfg)
+    for args, name in ((["--checkpoint", str(ckpt)], "a"), (["--preset", "tiny", "--random-init", "--seed",
+                                                               str(SEED)], "b")):
+        assert main(["predict", *args, "--images", str(FRAME), "--calib", str(FRAME / "calib.json"),
+                     "--out", str(tmp_path / f"{name}.npz")]) == 0
+    a, b = np.load(tmp_path / "a.npz"), np.load(tmp_path / "b.npz")
+    assert np.array_equal(a["occupancy"], b["occupancy"]) and np.array_equal(a["density"], b["density"])
+
+
+def _write_folder(folder, width=64, height=48):
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    calib = default_rig(width, height)
+    for i, cam in enumerate(calib["cameras"]):
+        cv2.imwrite(str(folder / f"{cam}.jpg"), np.full((height, width, 3), 40 * i, np.uint8))
+    (folder / "calib.json").write_text(json.dumps(calib))
+    return folder
+
+
+def test_bad_inputs_give_clear_errors(tmp_path, capsys):
+    folder = _write_folder(tmp_path / "imgs")
+    model = str(exported_tiny()[0])
+    base = ["predict", "--model", model, "--images", str(folder), "--out", str(tmp_path / "g.npz")]
+    (folder / "CAM_BACK.jpg").unlink()
+    assert main(base + ["--calib", str(folder / "calib.json")]) == 1
+    assert "CAM_BACK.jpg" in capsys.readouterr().err
+    _write_folder(folder)
+    (folder / "CAM_FRONT.jpg").write_bytes(b"not a jpeg")
+    assert main(base + ["--calib", str(folder / "calib.json")]) == 1
+    assert "CAM_FRONT.jpg" in capsys.readouterr().err
+    _write_folder(folder)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"cameras": {"CAM_FRONT": {}}}))
+    assert main(base + ["--calib", str(bad)]) == 1
+    assert "bad.json" in capsys.readouterr().err
+    assert main(["predict", "--preset", "tiny", "--images", str(folder), "--calib", str(bad),
+                 "--out", "x.npz"]) == 2
+    assert main(base + ["--calib", str(folder / "calib.json")]) == 0
+
+
+def test_bev_picture_orientation():
+    occ = np.full(GRID.shape, 17, np.uint8)
+    occ[190, 100, 3] = 4          # a car 36 m ahead       → top of the picture, centre column
+    occ[100, 190, 2] = 11         # road 36 m to the left  → left side, middle row
+    occ[100, 190, 9] = 15         # ... under a building   → the highest voxel wins
+    img = bev_image(occ, scale=1, mark_ego=False)
+    assert img.shape == (200, 200, 3)
+    assert (img[199 - 190, 199 - 100] == CLASS_COLORS[4]).all()
+    assert (img[199 - 100, 199 - 190] == CLASS_COLORS[15]).all()
+    assert (img[0, 0] == CLASS_COLORS[17]).all()
+
+
+def test_calibration_is_rescaled_to_the_image_size():
+    K_small = calibration_for_images(default_rig(480, 270), 1600, 900)[0]
+    K_native = calibration_arrays(default_rig(1600, 900))[0]
+    assert np.allclose(K_small[:, :2, :2], K_native[:, :2, :2], rtol=1e-6)
+    # principal point: (c + 0.5) · s − 0.5 (pixel centres)
+    assert np.allclose(K_small[:, 0, 2], (240 + 0.5) * 1600 / 480 - 0.5)
+    with pytest.raises(ValueError, match="aspect ratio"):
+        calibration_for_images(default_rig(480, 270), 1000, 1000)
+
+
+@needs_frame
+def test_load_image_folder_reads_rgb_in_camera_order():
+    import cv2
+
+    images = load_image_folder(FRAME)
+    assert images.shape == (6, 900, 1600, 3) and images.dtype == np.uint8
+    for i, cam in enumerate(["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT",
+                             "CAM_BACK_RIGHT"]):
+        assert np.array_equal(images[i], cv2.imread(str(FRAME / f"{cam}.jpg"))[:, :, ::-1])
