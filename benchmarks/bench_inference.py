@@ -1,6 +1,6 @@
 """Inference latency per preset: torch eager vs onnxruntime (CPU), six native 1600x900 uint8 images → grid.
 
-    python benchmarks/bench_inference.py [--presets tiny base] [--runs 20] [--occupied 0.25]
+    python benchmarks/bench_inference.py [--presets tiny base] [--runs 20] [--occupied 0.25] [--variants]
 
 For each preset a random-init model (seed 0) is exported (parity-checked on the real frame), then torch eager
 (``model.inference``, torch threads = cores) and onnxruntime (CPU provider, intra-op threads = cores) run the same
@@ -8,7 +8,8 @@ six decoded images alternately, so both see the same machine load. Φσ's output
 ``--occupied`` of the voxels is occupied (Φs only runs on those; a random-init model would leave the grid empty
 and flatter the timings). Printed: p50/p90 per backend, their ratio, model GFLOP (torch FLOP counter: matmuls and
 convolutions) and the achieved GFLOP/s next to a 2048³ fp32 matmul measured in the same run. JPEG decoding is
-timed separately and not included.
+timed separately and not included. ``--variants`` also writes the fp16 and int8 graphs and times them (with
+their agreement with fp32 on the same images).
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 FRAME = ROOT.parent / "shared" / "data" / "nuscenes-frame"
+SPINNING = False  # onnxruntime worker threads busy-wait (--ort-spinning) or sleep (default, as in predict/serve)
 
 
 def load_inputs():
@@ -63,7 +65,7 @@ def model_flops(model, args) -> float:
     return float(counter.get_total_flops())
 
 
-def bench_preset(name: str, runs: int, occupied: float, images, K, T, workdir: Path) -> dict:
+def bench_preset(name: str, runs: int, occupied: float, images, K, T, workdir: Path, variants: bool) -> dict:
     from export.onnx_export import export_model
     from export.parity import ParitySample
     from occflownet.inference_io import create_session, run_session
@@ -80,7 +82,7 @@ def bench_preset(name: str, runs: int, occupied: float, images, K, T, workdir: P
     t = time.perf_counter()
     path = export_model(model, model.cfg, workdir / f"{name}.onnx", parity_samples=[sample]).path
     export_s = time.perf_counter() - t
-    session = create_session(path, os.cpu_count())
+    session = create_session(path, os.cpu_count(), spinning=SPINNING)
     flops = model_flops(model, args)
     torch_t, ort_t = [], []
     with torch.no_grad():
@@ -90,8 +92,20 @@ def bench_preset(name: str, runs: int, occupied: float, images, K, T, workdir: P
             if i >= 2:
                 torch_t.append(tt)
                 ort_t.append(to)
-        occ = run_session(session, images, K, T)[0]
-    return {"preset": name, "torch_p50": np.median(torch_t), "torch_p90": np.percentile(torch_t, 90),
+        occ, dens = run_session(session, images, K, T)
+    extra = {}
+    if variants:
+        from export.onnx_export import agreement
+        from export.variants import write_fp16, write_int8
+
+        for tag, path_v in (("fp16", write_fp16(path, workdir / f"{name}.fp16.onnx")),
+                            ("int8", write_int8(path, workdir / f"{name}.int8.onnx", model.cfg))):
+            s_v = create_session(path_v, os.cpu_count(), spinning=SPINNING)
+            run_session(s_v, images, K, T)
+            times = [_timed(lambda: run_session(s_v, images, K, T)) for _ in range(max(3, runs // 2))]
+            a = agreement(occ, dens, *run_session(s_v, images, K, T))
+            extra[tag] = (float(np.median(times)), a)
+    return {"variants": extra, "preset": name, "torch_p50": np.median(torch_t), "torch_p90": np.percentile(torch_t, 90),
             "ort_p50": np.median(ort_t), "ort_p90": np.percentile(ort_t, 90), "gflop": flops / 1e9,
             "occupied": float(np.mean(occ != 17)), "export_s": export_s}
 
@@ -101,13 +115,17 @@ def main(argv=None) -> int:
     p.add_argument("--presets", nargs="+", default=["tiny", "base"], choices=["tiny", "base", "paper"])
     p.add_argument("--runs", type=int, default=20, help="timed runs per backend (after 2 warm-up runs)")
     p.add_argument("--occupied", type=float, default=0.25, help="fraction of occupied voxels to simulate")
+    p.add_argument("--variants", action="store_true", help="also time the fp16 and int8 graphs")
+    p.add_argument("--ort-spinning", action="store_true", help="let onnxruntime's idle threads busy-wait")
     args = p.parse_args(argv)
+    global SPINNING
+    SPINNING = args.ort_spinning
     cores = os.cpu_count() or 1
     torch.set_num_threads(cores)
     images, K, T, decode_ms, source = load_inputs()
     print(f"inputs: {source}, 6x{images.shape[2]}x{images.shape[1]} uint8; JPEG decode of the six files "
           f"{decode_ms:.0f} ms (not included below)")
-    print(f"threads: torch {torch.get_num_threads()}, onnxruntime {cores}; load average "
+    print(f"threads: torch {torch.get_num_threads()}, onnxruntime {cores} (spinning {SPINNING}); load average "
           f"{os.getloadavg()[0]:.2f} at start")
     peak = matmul_gflops()
     print(f"fp32 matmul 2048^3 (torch): {peak:.1f} GFLOP/s")
@@ -115,7 +133,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.presets:
             runs = args.runs if name == "tiny" else max(3, args.runs // 4)
-            r = bench_preset(name, runs, args.occupied, images, K, T, Path(tmp))
+            r = bench_preset(name, runs, args.occupied, images, K, T, Path(tmp), args.variants)
             rows.append(r)
             print(f"{name}: torch eager p50 {r['torch_p50'] * 1e3:.1f} ms p90 {r['torch_p90'] * 1e3:.1f} ms | "
                   f"onnxruntime p50 {r['ort_p50'] * 1e3:.1f} ms p90 {r['ort_p90'] * 1e3:.1f} ms | "
@@ -123,6 +141,10 @@ def main(argv=None) -> int:
                   f"torch {r['gflop'] / r['torch_p50']:.1f} GFLOP/s, ort {r['gflop'] / r['ort_p50']:.1f} GFLOP/s "
                   f"({100 * r['gflop'] / r['ort_p50'] / peak:.0f}% of matmul) | occupied "
                   f"{100 * r['occupied']:.0f}% | export {r['export_s']:.0f} s", flush=True)
+            for tag, (p50, a) in r["variants"].items():
+                print(f"  {name} {tag}: onnxruntime p50 {p50 * 1e3:.1f} ms; vs fp32: occupancy equal "
+                      f"{100 * a['occupancy_equal_fraction']:.2f}% of voxels, density max abs diff "
+                      f"{a['density_max_abs_diff']:.3f}", flush=True)
     print(f"load average at end {os.getloadavg()[0]:.2f}")
     return 0
 

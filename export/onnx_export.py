@@ -15,6 +15,7 @@ Pipeline (nothing is written to ``out`` unless every step passes):
 from __future__ import annotations
 
 import json
+import logging
 import os
 import tempfile
 import time
@@ -93,11 +94,19 @@ def example_inputs(cfg: ModelConfig, batch: int = 2):
 def trace_to_onnx(module: torch.nn.Module, inputs: tuple, path: Path, input_names, output_names,
                   dynamic_shapes) -> onnx.ModelProto:
     """torch.onnx.export(dynamo=True) into ``path``, returned as a ModelProto (exporter chatter silenced)."""
-    with warnings.catch_warnings(), torch.no_grad():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(module, inputs, str(path), dynamo=True, opset_version=OPSET, verbose=False,
-                          input_names=list(input_names), output_names=list(output_names),
-                          dynamic_shapes=dynamic_shapes, external_data=False)
+    loggers = [logging.getLogger(n) for n in ("onnx_ir", "onnxscript", "torch.onnx", "torch.export")]
+    levels = [lg.level for lg in loggers]
+    try:
+        for lg in loggers:
+            lg.setLevel(logging.ERROR)
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(module, inputs, str(path), dynamo=True, opset_version=OPSET, verbose=False,
+                              input_names=list(input_names), output_names=list(output_names),
+                              dynamic_shapes=dynamic_shapes, external_data=False)
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
     return onnx.load(str(path))
 
 

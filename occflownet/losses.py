@@ -13,7 +13,8 @@ Weights and definitions follow the paper and the official OccFlowNet code (desig
   the occupied voxels, weight 1.0 each; an optional mask (e.g. ``mask_camera``) restricts both.
 
 Weighted terms (the names the training log uses): ``ray_losses`` → "render_depth", "render_semantics";
-``voxel_losses`` → "voxel_density", "voxel_semantics"; ``lidar_depth_loss`` × ``lidar_depth_weight`` → "lidar_depth".
+``voxel_losses`` → "voxel_density", "voxel_semantics"; ``lidar_depth_loss`` × ``lidar_depth_weight`` →
+"lidar_depth".
 ``total_loss`` combines the terms for the mode ``"2d"``, ``"3d"`` or ``"2d+3d"`` and adds their sum as "total".
 ``render_losses`` and ``lidar_depth_loss`` are the unweighted primitives.
 """
@@ -207,8 +208,8 @@ def total_loss(cfg: LossConfig, *, rendered=None, depth_gt=None, labels_gt=None,
 
     2D terms (modes "2d", "2d+3d"): ``rendered`` (a ``RenderOutput``), ``depth_gt`` [R], ``labels_gt`` [R],
     ``class_weights`` [17] or None → "render_depth", "render_semantics". 3D terms (modes "3d", "2d+3d"):
-    ``density``, ``logits``, ``semantics_gt``, ``voxel_mask`` → "voxel_density", "voxel_semantics". LiDAR depth (any mode,
-    when ``lidar_depth_weight`` > 0 and ``depth_prob`` is given): "lidar_depth". Every term is already
+    ``density``, ``logits``, ``semantics_gt``, ``voxel_mask`` → "voxel_density", "voxel_semantics". LiDAR depth
+    (any mode, when ``lidar_depth_weight`` > 0 and ``depth_prob`` is given): "lidar_depth". Every term is already
     multiplied by its weight. A missing input the mode needs raises ValueError naming it.
     """
     terms: dict[str, torch.Tensor] = {}

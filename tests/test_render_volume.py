@@ -41,6 +41,25 @@ def test_opaque_single_voxel_slab_renders_its_distance_and_class():
     assert torch.all(out.semantics.argmax(-1) == 5)
 
 
+@pytest.mark.parametrize("axis,face,origin_coord", [(1, 15, -3.0), (2, 6, -0.8)])
+def test_slab_distance_along_y_and_z(axis, face, origin_coord):
+    # a slab of voxels with index `face` along `axis`; its near face is at lower + face * 0.4
+    density = torch.zeros(SMALL.shape)
+    index = [slice(None)] * 3
+    index[axis] = face
+    density[tuple(index)] = 1.0
+    logits = torch.zeros(*SMALL.shape, NUM_CLASSES)
+    logits[..., 2] = 1.0
+    origin = torch.tensor([_centre(0, 3), _centre(1, 3), _centre(2, 1)])
+    origin[axis] = origin_coord
+    direction = torch.zeros(3)
+    direction[axis] = 1.0
+    out = render_rays(density, logits, origin[None], direction[None], RenderConfig(far=10.0, density_scale=50.0,
+                                                                                    grid=SMALL))
+    distance = SMALL.lower[axis] + face * SMALL.voxel_size - origin_coord
+    assert abs(float(out.depth[0]) - distance) < 0.4 and float(out.weight_sum[0]) > 0.99
+
+
 def test_unscaled_thick_slab_matches_the_continuous_integral():
     # σ = 1 from voxel 15 to the grid's end: the exact render of the trilinear field, by dense quadrature.
     density, logits = _slab(15, 19, cls=3)
@@ -59,8 +78,9 @@ def test_unscaled_thick_slab_matches_the_continuous_integral():
     assert np.allclose(out.depth.numpy(), exact_depth, atol=0.02), (out.depth, exact_depth)
     assert np.allclose(out.weight_sum.numpy(), exact_weight, atol=0.01)
     assert torch.all(out.semantics.argmax(-1) == 3)
-    # the official σ ∈ [0, 1] per metre: the rendered surface lies behind the face (documented in docs/render.md)
-    assert exact_depth > 5.0 + 0.5
+    # the official σ ∈ [0, 1] per metre: even σ = 1 leaves a 1 m mean free path, so the (weight-normalised)
+    # rendered surface lies well behind the face at 5 m and 11 % of the light passes 2 m of "solid" voxels
+    assert exact_depth / exact_weight > 5.0 + 0.5 and exact_weight < 0.9
 
 
 def test_empty_grid_renders_nothing():
@@ -143,8 +163,8 @@ def test_fast_path_matches_grid_sample_reference_values_and_gradients(dtype, tol
         loss.backward()
         results.append((out.depth, out.semantics, out.weight_sum, out.t_samples, d.grad, lg.grad))
     for fast, ref in zip(*results):
-        scale = max(1.0, float(ref.abs().max()))
-        assert float((fast - ref).abs().max()) <= tol * scale
+        scale = max(1.0, float(ref.detach().abs().max()))
+        assert float((fast - ref).detach().abs().max()) <= tol * scale
 
 
 def test_chunking_does_not_change_results():
@@ -198,7 +218,7 @@ def test_depth_loss_fits_a_free_volume_to_an_analytic_scan():
     raw = torch.full((1, *grid.shape), -3.0, requires_grad=True)  # σ ≈ 0.05 everywhere: a free volume
     logits = torch.zeros(1, *grid.shape, NUM_CLASSES)
     cfg = RenderConfig(far=12.0, grid=grid)
-    opt = torch.optim.Adam([raw], lr=0.2)
+    opt = torch.optim.Adam([raw], lr=0.3)
 
     def mean_error():
         with torch.no_grad():
@@ -207,7 +227,7 @@ def test_depth_loss_fits_a_free_volume_to_an_analytic_scan():
 
     start = mean_error()
     for _ in range(200):
-        pick = torch.randint(0, len(dirs), (512,), generator=gen)
+        pick = torch.randint(0, len(dirs), (256,), generator=gen)
         out = render_rays(torch.sigmoid(raw), logits, origins[pick], dirs[pick], cfg, gen)
         loss = ((out.depth - depth_gt[pick]) ** 2).mean()
         opt.zero_grad()

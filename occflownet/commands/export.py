@@ -38,7 +38,8 @@ def run(args) -> int:
         from export.variants import write_variants
 
         try:
-            for line in write_variants(result.path, model.cfg, fp16=args.fp16, int8=args.int8):
+            frame = args.parity_frame[0] if args.parity_frame else None
+            for line in write_variants(result.path, model.cfg, fp16=args.fp16, int8=args.int8, frame=frame):
                 print(line)
         except (ExportError, ValueError, RuntimeError) as exc:
             print(f"occflownet export: variant failed: {exc}", file=sys.stderr)

@@ -23,11 +23,32 @@ Backward of the rendering: with e_i = ∂L/∂w_i = g_depth·m_i + g_wsum + g_se
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import torch
 import torch.nn.functional as F
 
 from occflownet.render.lookup import PaddedTables, corner_weights, grid_sample_lookup
 from occflownet.render.sampling import importance_sample, intervals_from_samples
+
+
+@contextmanager
+def intra_op_threads(n: int):
+    """Run the enclosed torch ops with ``n`` intra-op threads (n <= 0: leave the setting alone), then restore.
+
+    The fast path issues ~100 medium-sized ops per chunk; with OpenMP on a machine whose cores are busy with other
+    processes, every op can stall on a descheduled worker thread (measured: 60x slower on the shared 2-core box),
+    so the renderer defaults to one thread (``RenderConfig.intra_op_threads``).
+    """
+    old = torch.get_num_threads()
+    if n <= 0 or n == old:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
 
 
 def coarse_cdf(density, origins, directions, edges, ray_volume, cfg) -> torch.Tensor:
@@ -139,6 +160,12 @@ class FastRender(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, sigma_flat, logits_flat, density, origins, directions, edges, ray_volume, cfg, generator):
+        with intra_op_threads(cfg.intra_op_threads):
+            return FastRender._forward(ctx, sigma_flat, logits_flat, density, origins, directions, edges, ray_volume,
+                                       cfg, generator)
+
+    @staticmethod
+    def _forward(ctx, sigma_flat, logits_flat, density, origins, directions, edges, ray_volume, cfg, generator):
         tables = PaddedTables(sigma_flat, cfg.grid)
         n_rays, n_fine, channels = origins.shape[0], cfg.n_fine, logits_flat.shape[1]
         new = origins.new_empty
@@ -171,12 +198,19 @@ class FastRender(torch.autograd.Function):
                            trans))
         ctx.chunks = chunks
         ctx.density_scale = cfg.density_scale
+        ctx.threads = cfg.intra_op_threads
         ctx.save_for_backward(sigma_flat, logits_flat, weights, a_out, b_out)
         ctx.mark_non_differentiable(weights, sigma_out, t_out, a_out, b_out)
         return depth, semantics, weight_sum, weights, sigma_out, t_out, a_out, b_out
 
     @staticmethod
     def backward(ctx, g_depth, g_sem, g_wsum, *_unused):
+        with intra_op_threads(ctx.threads):
+            grads = FastRender._backward(ctx, g_depth, g_sem, g_wsum)
+        return grads + (None,) * 7
+
+    @staticmethod
+    def _backward(ctx, g_depth, g_sem, g_wsum):
         sigma_flat, logits_flat, weights, a_all, b_all = ctx.saved_tensors
         need_sigma, need_logits = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         grad_sigma = torch.zeros_like(sigma_flat) if need_sigma else None
@@ -199,4 +233,4 @@ class FastRender(torch.autograd.Function):
             g_sig = (d_tau * (ctx.density_scale * (b - a))).reshape(-1, 1)
             g_corner = corner_w.new_zeros(rows.shape).index_add_(0, run_of_sample, g_sig * corner_w)
             grad_sigma.index_add_(0, rows.reshape(-1), g_corner.reshape(-1))
-        return grad_sigma, grad_logits, None, None, None, None, None, None, None
+        return grad_sigma, grad_logits

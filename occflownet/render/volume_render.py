@@ -50,6 +50,7 @@ class RenderConfig:
     uniform_mix: float = 0.0        # mix this fraction of a uniform pdf into the fine pdf (official: 0)
     lookup: str = "gather"          # "gather" (fast, hand-written backward) or "grid_sample" (reference)
     chunk_rays: int = 1024          # rays per chunk of the fast path (memory/cache; does not change results)
+    intra_op_threads: int = 1       # torch threads inside the fast path (0: torch's setting); see fast_render
     grid: Grid = GRID
 
     def __post_init__(self):
@@ -61,6 +62,8 @@ class RenderConfig:
             raise ValueError(f"RenderConfig.density_scale must be > 0, got {self.density_scale}")
         if not 0.0 <= self.uniform_mix <= 1.0:
             raise ValueError(f"RenderConfig.uniform_mix must be in [0, 1], got {self.uniform_mix}")
+        if self.intra_op_threads < 0:
+            raise ValueError(f"RenderConfig.intra_op_threads must be >= 0, got {self.intra_op_threads}")
         if self.chunk_rays < 1:
             raise ValueError(f"RenderConfig.chunk_rays must be >= 1, got {self.chunk_rays}")
         if self.lookup not in LOOKUPS:

@@ -1,0 +1,96 @@
+"""The synthetic ablation study (issue 6): the paper's component ladder on the synthetic world, one budget per row.
+
+Usage (the data first, once):
+    occflownet synth --out W/train --scenes 8 --frames 40 --seed 0 && occflownet prepare --dataroot W/train
+    occflownet synth --out W/val --scenes 2 --frames 40 --seed 1000 && occflownet prepare --dataroot W/val
+    python benchmarks/ablation.py --train W/train --val W/val --out W/runs --steps 200 [--rows 1,2,...]
+
+Every row trains `tiny` with the same seed and step budget on split `all` of the train root, evaluates the EMA
+checkpoint on split `all` of the val root (mIoU with the camera mask, RayIoU, static/dynamic mIoU) and appends a
+JSON line to ``<out>/results.jsonl``; the table is printed at the end (markdown, for docs/ablation.md).
+Rows already in results.jsonl are skipped, so the study can be resumed.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+# name → extra `occflownet train` options (the paper's Tables 1, 2 and 4 as issue 6 lists them)
+ROWS = {
+    1: ("3d (voxel labels only)", ["--supervision", "3d", "--horizon", "0", "--no-flow"]),
+    2: ("2d, semantics only, O=0", ["--supervision", "2d", "--horizon", "0", "--no-depth-loss", "--no-dynamic-filter",
+                                    "--no-disocclusion", "--no-loss-weighting", "--no-flow"]),
+    3: ("2d, semantics + depth, O=0", ["--supervision", "2d", "--horizon", "0", "--no-dynamic-filter",
+                                       "--no-disocclusion", "--no-loss-weighting", "--no-flow"]),
+    4: ("2d, + temporal O=3, no filter", ["--supervision", "2d", "--horizon", "3", "--no-dynamic-filter",
+                                          "--no-disocclusion", "--no-loss-weighting", "--no-flow"]),
+    5: ("2d base: + filter, disocclusion, LW", ["--supervision", "2d", "--horizon", "3", "--no-flow"]),
+    6: ("2d + flow", ["--supervision", "2d", "--horizon", "3", "--flow"]),
+    7: ("2d+3d + flow", ["--supervision", "2d+3d", "--horizon", "3", "--flow"]),
+}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--train", required=True)
+    ap.add_argument("--val", required=True)
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--rays", type=int, default=4096)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rows", default=",".join(map(str, ROWS)))
+    ap.add_argument("--num-workers", type=int, default=1)
+    args = ap.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results_path = out / "results.jsonl"
+    done = {json.loads(line)["row"] for line in results_path.read_text().splitlines()} if results_path.exists() else set()
+    for row in [int(r) for r in args.rows.split(",")]:
+        if row in done:
+            continue
+        name, extra = ROWS[row]
+        run = out / f"row{row}"
+        train = [sys.executable, "-m", "occflownet", "train", "--preset", "tiny", "--dataroot", args.train,
+                 "--split", "all", "--out", str(run), "--max-steps", str(args.steps), "--rays-per-step",
+                 str(args.rays), "--seed", str(args.seed), "--num-workers", str(args.num_workers), "--quiet",
+                 "--resume", *extra]
+        t0 = time.time()
+        print(f"row {row}: {name}\n  {' '.join(train)}", file=sys.stderr, flush=True)
+        subprocess.run(train, check=True)
+        t_train = time.time() - t0
+        evaluate = [sys.executable, "-m", "occflownet", "eval", "--checkpoint", str(run / "checkpoints" / "last.pt"),
+                    "--dataroot", args.val, "--split", "all"]
+        res = subprocess.run(evaluate, check=True, capture_output=True, text=True)
+        metrics = json.loads(res.stdout)
+        record = {"row": row, "name": name, "options": extra, "steps": args.steps, "rays": args.rays,
+                  "train_seconds": round(t_train, 1), "metrics": metrics}
+        with open(results_path, "a") as f:
+            f.write(json.dumps(record) + "\n")
+    print(table(results_path))
+    return 0
+
+
+def _pct(x):
+    return "n/a" if x is None else f"{100 * x:.2f}"
+
+
+def table(results_path: Path) -> str:
+    rows = sorted((json.loads(line) for line in results_path.read_text().splitlines()), key=lambda r: r["row"])
+    lines = ["| # | setting | mIoU (cam mask) | RayIoU | static mIoU | dynamic mIoU | mIoU (no mask) | train s |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        m = r["metrics"]
+        occ = m["occupancy"]["camera_mask"]
+        ray = m.get("rayiou") or {}
+        lines.append(f"| {r['row']} | {r['name']} | {_pct(occ['miou'])} | {_pct(ray.get('rayiou'))} | "
+                     f"{_pct(occ['miou_static'])} | {_pct(occ['miou_dynamic'])} | "
+                     f"{_pct(m['occupancy']['all_voxels']['miou'])} | {r['train_seconds']:.0f} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

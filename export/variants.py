@@ -1,0 +1,157 @@
+"""Reduced-precision variants of an exported fp32 graph, each reported against the fp32 model.
+
+- fp16: weights and activations in float16 (``onnxruntime.transformers.float16``); inputs/outputs keep their
+  contract-v1 types, and the geometry/pooling/threshold ops stay in float32 (their indices must be exact).
+- int8: static QDQ quantisation (``onnxruntime.quantization.quantize_static``) of Conv/MatMul/Gemm only,
+  per-channel weights, activations calibrated on synthetic samples (random images, default and turned rigs).
+
+Agreement with fp32 on the evaluation sample (the real frame when given, else a random one): fraction of equal
+occupancy voxels and density max abs diff. A variant that onnxruntime cannot load or that is not standard ONNX
+raises; agreement is reported, not enforced (reduced precision is expected to differ).
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import onnx
+
+from export.onnx_export import ExportError, agreement, validate_proto
+from export.parity import default_parity_samples, frame_sample
+from occflownet.inference_io import create_session, run_session
+from occflownet.model import ModelConfig
+
+# ops kept in float32 in the fp16 variant: index/geometry arithmetic, pooling, resize, fusion
+FP16_KEEP_FP32 = ["Resize", "ScatterND", "Floor", "Where", "Range", "NonZero", "GatherND", "ArgMax", "Sigmoid",
+                  "Softmax", "Div", "Reciprocal", "Min", "Max", "CumSum", "Clip", "GreaterOrEqual", "Less",
+                  "LessOrEqual", "Greater", "Equal", "Cast", "IsNaN", "IsInf", "Expand", "Concat", "Slice"]
+
+
+def _with_suffix(path: Path, tag: str) -> Path:
+    return path.with_name(f"{path.stem}.{tag}{path.suffix}")
+
+
+def _set_precision(proto: onnx.ModelProto, precision: str) -> None:
+    """Add metadata "precision"; drop tool annotations that are not JSON (the quantiser adds "onnx.infer")."""
+    keep = []
+    for p in proto.metadata_props:
+        try:
+            json.loads(p.value)
+            keep.append((p.key, p.value))
+        except json.JSONDecodeError:
+            pass
+    del proto.metadata_props[:]
+    for key, value in keep:
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    for p in proto.metadata_props:
+        if p.key == "precision":
+            p.value = json.dumps(precision)
+            return
+    entry = proto.metadata_props.add()
+    entry.key, entry.value = "precision", json.dumps(precision)
+
+
+def topological_sort(graph: onnx.GraphProto) -> None:
+    """Reorder ``graph.node`` so that every node comes after the producers of its inputs (the fp16 converter
+    appends its input casts at the end)."""
+    available = {i.name for i in graph.input} | {i.name for i in graph.initializer} | {""}
+    pending, ordered = list(graph.node), []
+    while pending:
+        ready = [n for n in pending if all(i in available for i in n.input)]
+        if not ready:
+            raise ExportError("graph has a cycle or an input that nothing produces")
+        for n in ready:
+            ordered.append(n)
+            available.update(n.output)
+        ready_ids = {id(n) for n in ready}
+        pending = [n for n in pending if id(n) not in ready_ids]
+    copies = [onnx.NodeProto() for _ in ordered]
+    for c, n in zip(copies, ordered):
+        c.CopyFrom(n)
+    del graph.node[:]
+    graph.node.extend(copies)
+
+
+def write_fp16(src: Path, dst: Path) -> Path:
+    from onnxruntime.transformers.float16 import DEFAULT_OP_BLOCK_LIST, convert_float_to_float16
+
+    proto = onnx.load(str(src))
+    half = convert_float_to_float16(proto, keep_io_types=True, op_block_list=DEFAULT_OP_BLOCK_LIST + FP16_KEEP_FP32)
+    half.ir_version = proto.ir_version
+    topological_sort(half.graph)
+    del half.graph.value_info[:]          # stale fp32 annotations; the checker re-infers the types
+    _set_precision(half, "fp16")
+    validate_proto(half)
+    onnx.save(half, str(dst))
+    return dst
+
+
+class _SyntheticReader:
+    """onnxruntime CalibrationDataReader over synthetic samples (batch 1 each)."""
+
+    def __init__(self, cfg: ModelConfig, count: int):
+        self.samples = []
+        for s in default_parity_samples(cfg, [], seed=11):
+            for b in range(s.images.shape[0]):
+                self.samples.append({"images": s.images[b:b + 1], "intrinsics": s.intrinsics[b:b + 1],
+                                     "cam2ego": s.cam2ego[b:b + 1]})
+        self.samples = self.samples[:count]
+        self._it = iter(self.samples)
+
+    def get_next(self):
+        return next(self._it, None)
+
+    def rewind(self):
+        self._it = iter(self.samples)
+
+
+def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int = 4) -> Path:
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+
+    root = logging.getLogger()
+    level = root.level
+    root.setLevel(logging.ERROR)   # the quantiser logs a "consider pre-processing" advice on the root logger
+    try:
+        quantize_static(str(src), str(dst), _SyntheticReader(cfg, calibration_samples),
+                        quant_format=QuantFormat.QDQ, op_types_to_quantize=["Conv", "MatMul", "Gemm"],
+                        per_channel=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                        calibrate_method=CalibrationMethod.MinMax)
+    finally:
+        root.setLevel(level)
+    proto = onnx.load(str(dst))
+    proto.ir_version = min(proto.ir_version, onnx.load(str(src)).ir_version)
+    _set_precision(proto, "int8")
+    validate_proto(proto)
+    onnx.save(proto, str(dst))
+    return dst
+
+
+def write_variants(fp32_path: str | Path, cfg: ModelConfig, fp16: bool = False, int8: bool = False,
+                   frame: str | Path | None = None) -> list[str]:
+    """Write the requested variants beside ``fp32_path``; returns one report line per variant."""
+    fp32_path = Path(fp32_path)
+    sample = frame_sample(frame, 1) if frame else default_parity_samples(cfg, [], seed=5)[0]
+    reference = run_session(create_session(fp32_path), sample.images, sample.intrinsics, sample.cam2ego)
+    lines = []
+    todo = [("fp16", write_fp16, ())] if fp16 else []
+    todo += [("int8", write_int8, (cfg,))] if int8 else []
+    for tag, writer, extra in todo:
+        dst = _with_suffix(fp32_path, tag)
+        try:
+            writer(fp32_path, dst, *extra)
+            out = run_session(create_session(dst), sample.images, sample.intrinsics, sample.cam2ego)
+        except ExportError:
+            dst.unlink(missing_ok=True)
+            raise
+        except Exception as exc:
+            dst.unlink(missing_ok=True)
+            raise ExportError(f"{tag} variant failed: {type(exc).__name__}: {exc}") from exc
+        a = agreement(reference[0], reference[1], out[0], out[1])
+        occupied = float(np.mean(reference[0] != 17))
+        lines.append(f"wrote {dst} ({dst.stat().st_size / 1e6:.1f} MB): vs fp32 on {sample.name}: occupancy equal "
+                     f"{100 * a['occupancy_equal_fraction']:.3f}% of voxels (fp32 occupied "
+                     f"{100 * occupied:.1f}%), density max abs diff {a['density_max_abs_diff']:.2e}")
+    return lines

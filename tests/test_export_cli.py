@@ -1,0 +1,67 @@
+"""`occflownet export` plumbing and the fp16/int8 variants (tracing is reused from the session's exported tiny)."""
+import json
+
+import numpy as np
+import onnx
+import pytest
+
+from exported_models import SEED, exported_tiny
+from export import onnx_export
+from export.variants import write_variants
+from occflownet.cli import main
+from occflownet.inference_io import create_session, read_metadata
+
+
+@pytest.fixture()
+def reuse_trace(monkeypatch):
+    """Skip torch.onnx tracing: hand back the graph exported (from the seed-SEED tiny) for this session."""
+    path = exported_tiny()[0]
+    monkeypatch.setattr(onnx_export, "trace_to_onnx", lambda *a, **k: onnx.load(str(path)))
+    return path
+
+
+def test_export_from_checkpoint_and_from_seed(reuse_trace, tmp_path, capsys):
+    from occflownet.model import save_checkpoint
+
+    model = exported_tiny()[2]
+    ckpt = save_checkpoint(tmp_path / "m.pt", model, model.cfg, {"step": 3})
+    assert main(["export", "--checkpoint", str(ckpt), "--out", str(tmp_path / "a.onnx")]) == 0
+    assert main(["export", "--preset", "tiny", "--random-init", "--seed", str(SEED),
+                 "--out", str(tmp_path / "b.onnx")]) == 0
+    assert "parity" in capsys.readouterr().out
+    meta = read_metadata(create_session(tmp_path / "a.onnx"))
+    assert meta["preset"] == "tiny" and meta["onnx_contract"] == "v1"
+
+
+def test_parity_catches_a_graph_that_is_not_the_model(reuse_trace, tmp_path, capsys):
+    """Another seed's weights against the seed-SEED graph: parity fails, nothing is written, exit 1."""
+    out = tmp_path / "c.onnx"
+    assert main(["export", "--preset", "tiny", "--random-init", "--seed", str(SEED + 1), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "parity failed" in err and "FAIL" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_preset_needs_random_init(tmp_path, capsys):
+    assert main(["export", "--preset", "tiny", "--out", str(tmp_path / "x.onnx")]) == 2
+    assert "--random-init" in capsys.readouterr().err
+
+
+def test_fp16_and_int8_variants(tmp_path):
+    src = tmp_path / "m.onnx"
+    src.write_bytes(exported_tiny()[0].read_bytes())
+    lines = write_variants(src, exported_tiny()[2].cfg, fp16=True, int8=True)
+    assert len(lines) == 2 and all("occupancy equal" in line for line in lines)
+    for tag in ("fp16", "int8"):
+        path = tmp_path / f"m.{tag}.onnx"
+        proto = onnx.load(str(path))
+        onnx.checker.check_model(proto)
+        assert {n.domain for n in proto.graph.node} == {""} and proto.ir_version <= 13
+        meta = {p.key: json.loads(p.value) for p in proto.metadata_props}
+        assert meta["precision"] == tag and meta["onnx_contract"] == "v1"
+        session = create_session(path)
+        assert [i.name for i in session.get_inputs()] == ["images", "intrinsics", "cam2ego"]
+    ops = {n.op_type for n in onnx.load(str(tmp_path / "m.int8.onnx")).graph.node}
+    assert {"QuantizeLinear", "DequantizeLinear"} <= ops
+    diffs = [float(line.rsplit("diff ", 1)[1]) for line in lines]
+    assert max(diffs) < 0.05 and not np.isnan(diffs).any()
