@@ -44,6 +44,8 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rows", default=",".join(map(str, ROWS)))
     ap.add_argument("--num-workers", type=int, default=1)
+    ap.add_argument("--phase", choices=["train", "eval", "all"], default="all",
+                    help="train only (e.g. several row groups in parallel), eval only, or both per row")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -58,10 +60,14 @@ def main() -> int:
                  "--split", "all", "--out", str(run), "--max-steps", str(args.steps), "--rays-per-step",
                  str(args.rays), "--seed", str(args.seed), "--num-workers", str(args.num_workers), "--quiet",
                  "--resume", *extra]
-        t0 = time.time()
-        print(f"row {row}: {name}\n  {' '.join(train)}", file=sys.stderr, flush=True)
-        subprocess.run(train, check=True)
-        t_train = time.time() - t0
+        if args.phase in ("train", "all"):
+            t0 = time.time()
+            print(f"row {row}: {name}\n  {' '.join(train)}", file=sys.stderr, flush=True)
+            subprocess.run(train, check=True)
+            (run / "train_seconds.txt").write_text(f"{time.time() - t0:.1f}")
+        if args.phase == "train":
+            continue
+        t_train = float((run / "train_seconds.txt").read_text())
         evaluate = [sys.executable, "-m", "occflownet", "eval", "--checkpoint", str(run / "checkpoints" / "last.pt"),
                     "--dataroot", args.val, "--split", "all"]
         res = subprocess.run(evaluate, check=True, capture_output=True, text=True)

@@ -89,14 +89,16 @@ def _load_flow(cfg: TrainConfig):
 
 
 def _check_ranks_in_sync(model, info, out: Path) -> None:
-    """Gather a hash of every rank's weights; rank 0 records them in ``ddp_check.json`` and fails loudly if the
-    replicas diverged (DDP keeps them identical; a mismatch means a broken set-up, e.g. rank-dependent buffers)."""
+    """Gather a hash of every rank's parameters; rank 0 records them in ``ddp_check.json`` and fails loudly if the
+    replicas diverged (DDP keeps parameters identical; a mismatch means a broken set-up). BatchNorm running
+    statistics are per rank after the last step (DDP broadcasts rank 0's at each forward); checkpoints hold
+    rank 0's."""
     import hashlib
 
     import torch.distributed as dist
 
     digest = hashlib.sha256()
-    for name, value in sorted(model.state_dict().items()):
+    for name, value in sorted(model.named_parameters()):
         digest.update(name.encode() + value.detach().cpu().contiguous().numpy().tobytes())
     hashes = [None] * info.world_size
     dist.all_gather_object(hashes, digest.hexdigest())
