@@ -19,6 +19,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    import contextlib
+    import io
     import shlex
     import sys
     import time
@@ -45,7 +47,11 @@ def run(args) -> int:
     t0 = time.monotonic()
     for n, argv in enumerate(stages, 1):
         print(f"\n[{n}/{len(stages)}] occflownet {shlex.join(argv)}", file=sys.stderr, flush=True)
-        rc = cli(argv)
+        if argv[0] == "eval":  # the table goes to stderr and the JSON to --output; keep stdout for the summary
+            with contextlib.redirect_stdout(io.StringIO()):
+                rc = cli(argv)
+        else:
+            rc = cli(argv)
         if rc:
             print(f"quickstart: stage `{argv[0]}` failed (exit {rc}); fix the error above and re-run "
                   "(finished stages are reused: the world is kept and training resumes)", file=sys.stderr)
