@@ -76,7 +76,8 @@ def main() -> int:
                   "train_seconds": round(t_train, 1), "metrics": metrics}
         with open(results_path, "a") as f:
             f.write(json.dumps(record) + "\n")
-    print(table(results_path))
+    if results_path.exists():
+        print(table(results_path))
     return 0
 
 
