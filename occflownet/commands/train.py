@@ -26,6 +26,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loss-weighting", action=argparse.BooleanOptionalAction, default=True)
     p.add_argument("--depth-loss", action=argparse.BooleanOptionalAction, default=True,
                    help="rendered-depth MSE and LiDAR depth BCE (off: semantics only)")
+    p.add_argument("--density-scale", type=float, default=1.0,
+                   help="rendering optical depth per metre = scale * sigma (1.0 = the official, unscaled sigma)")
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--time-limit", type=float, default=0.0, help="stop with a checkpoint after this many seconds")
     p.add_argument("--batch-size", type=int, default=1, help="samples per process per step")
@@ -60,7 +62,7 @@ def config_from_args(args):
         preset=args.preset, dataroot=str(args.dataroot), out=str(args.out), version=version, split=args.split,
         supervision=args.supervision, horizon=args.horizon, flow=args.flow, flow_mover=args.flow_mover,
         dynamic_filter=args.dynamic_filter, disocclusion=args.disocclusion, loss_weighting=args.loss_weighting,
-        depth_loss=args.depth_loss, max_steps=args.max_steps, time_limit_s=args.time_limit,
+        depth_loss=args.depth_loss, density_scale=args.density_scale, max_steps=args.max_steps, time_limit_s=args.time_limit,
         batch_size=args.batch_size, rays_per_step=pick("rays_per_step"), lr=pick("lr"),
         weight_decay=args.weight_decay, warmup_steps=pick("warmup_steps"), ema_decay=pick("ema_decay"),
         checkpoint_every=pick("checkpoint_every"), log_every=args.log_every, seed=args.seed,

@@ -28,6 +28,7 @@ class TrainConfig:
     disocclusion: bool = True
     loss_weighting: bool = True
     depth_loss: bool = True          # rendered depth MSE and the LSS LiDAR depth BCE
+    density_scale: float = 1.0       # rendering uses τ_i = density_scale · σ_i · δ_i; 1.0 = official (σ per metre)
     max_steps: int = 1000
     time_limit_s: float = 0.0        # 0 = no limit; otherwise stop (with a checkpoint) after this many seconds
     batch_size: int = 1              # samples per process per step

@@ -23,7 +23,7 @@ class LossComputer:
     def __init__(self, cfg: TrainConfig, model_cfg: ModelConfig, class_weights: torch.Tensor | None,
                  render_cfg: RenderConfig | None = None):
         self.cfg = cfg
-        self.render_cfg = render_cfg or RenderConfig()
+        self.render_cfg = render_cfg or RenderConfig(density_scale=cfg.density_scale)
         self.class_weights = class_weights
         self.depth_bins = torch.tensor(model_cfg.depth_bin_centers(), dtype=torch.float32)
         self.loss_cfg = L.LossConfig(mode=cfg.supervision, depth_weight=0.05 if cfg.depth_loss else 0.0,
