@@ -15,7 +15,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int, default=16, help="keyframes per scene")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--train-minutes", type=float, default=7.0, help="training time budget")
-    p.add_argument("--max-steps", type=int, default=100000, help="step cap (the time budget usually ends first)")
+    p.add_argument("--max-steps", type=int, default=300, help="step cap (about the time budget on a 2-core CPU)")
     p.add_argument("--supervision", default="2d+3d", choices=["2d", "3d", "2d+3d"],
                    help="default 2d+3d (the paper's 'Flow 2D+3D'): within minutes on a CPU only runs with 3D labels "
                         "predict occupied voxels; 2d alone needs a far longer budget (docs/ablation.md)")
