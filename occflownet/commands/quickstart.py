@@ -41,8 +41,8 @@ def run(args) -> int:
     stages += [
         ["prepare", "--dataroot", str(world)],
         ["train", "--preset", "tiny", "--dataroot", str(world), "--out", str(run_dir), "--split", "train",
-         "--supervision", args.supervision, "--flow", "--time-limit", str(args.train_minutes * 60), "--max-steps", str(args.max_steps), "--resume",
-         "--seed", str(args.seed)],
+         "--supervision", args.supervision, "--flow", "--time-limit", str(args.train_minutes * 60),
+         "--max-steps", str(args.max_steps), "--resume", "--seed", str(args.seed)],
         ["eval", "--checkpoint", str(ckpt), "--dataroot", str(world), "--split", "val",
          "--save-predictions", str(out / "predictions"), "--output", str(out / "eval.json")],
         ["export", "--checkpoint", str(ckpt), "--out", str(onnx)],
