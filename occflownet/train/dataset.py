@@ -81,7 +81,10 @@ class TrainingSamples(Dataset):
             })
             if self.cfg.flow:
                 record = self.flow_records.get(sample.token)
-                item["flow"] = flow_moves(record, frames) if record is not None else None
+                if record is None:
+                    raise KeyError(f"no flow record for sample {sample.token}: the flow file is older than the "
+                                   f"index; re-run `occflownet prepare --dataroot {self.dataroot}`")
+                item["flow"] = flow_moves(record, frames)
         if self.cfg.depth_loss:
             item["depth_points"] = torch.from_numpy(self._depth_points(position, rng))
         if self.cfg.uses_3d:

@@ -34,15 +34,9 @@ class LossComputer:
         source = batch["volume_source"].to(device)
         temporal = batch["volume_is_temporal"].to(device)
         if self.cfg.flow:
-            parts, offsets = [], []
-            for moves, offset in batch["flow"]:
-                if moves is not None:
-                    parts.append(PackedMoves.from_arrays(**moves))
-                    offsets.append(offset)
-            if parts:
-                packed = PackedMoves.concat(parts, offsets).to(device)
-                return warp_volumes(density, logits, source, packed, mover=self.cfg.flow_mover)
-            return density[source], logits[source]
+            parts = [PackedMoves.from_arrays(**moves) for moves, _ in batch["flow"]]
+            packed = PackedMoves.concat(parts, [offset for _, offset in batch["flow"]]).to(device)
+            return warp_volumes(density, logits, source, packed, mover=self.cfg.flow_mover)
         dens = density[source]
         if self.cfg.disocclusion and bool(temporal.any()):
             dens = torch.where(temporal[:, None, None, None], disocclude(dens, logits[source]), dens)
