@@ -1,13 +1,10 @@
 """`occflownet prepare` (index + class counts + flow hook) and the class-weight formula."""
 import json
-import sys
-import types
 
 import numpy as np
 import pytest
 from nuscenes_fixture import SCENES, write_fixture, visible_hits
 
-import occflownet.data
 from occflownet.cli import main
 from occflownet.config import NUM_CLASSES, map_lidarseg
 from occflownet.data.class_weights import ClassStats, class_weights

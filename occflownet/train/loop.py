@@ -8,7 +8,6 @@ holds the training state: raw weights, optimizer, scheduler, EMA counters, step,
 from __future__ import annotations
 
 import json
-import math
 import sys
 import time
 from dataclasses import replace
