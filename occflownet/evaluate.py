@@ -1,21 +1,38 @@
 """The evaluation run behind `occflownet eval`: predict every sample of a split, accumulate Occ3D mIoU (with and
 without the camera mask, per class, static/dynamic) and RayIoU (1, 2, 4 m), optionally save the predictions.
 
-A *predictor* is any callable ``(images uint8 [6, H, W, 3], intrinsics float32 [6, 3, 3], cam2ego float32
-[6, 4, 4]) → (occupancy uint8 [200, 200, 16], density float32 [200, 200, 16])``: the torch model of a checkpoint
-(:func:`checkpoint_predictor`) or the exported ONNX graph (:func:`onnx_predictor`, onnxruntime only, no torch).
-Inputs follow training: images as stored, each camera's intrinsics, and ``cam2ego`` = camera → current ego frame
-(through each camera's own ego pose). Predictions and labels are in the current ego frame of the keyframe.
+Two steps, so that bad data is reported before a model is loaded or anything runs:
+
+1. :func:`select_samples` reads the index ``prepare`` wrote, picks the split and checks that every selected sample
+   has its Occ3D labels (error naming the samples otherwise);
+2. :func:`evaluate` runs a *predictor* over them and accumulates the metrics.
+
+A predictor is any callable on a batch of B samples::
+
+    predict(images uint8 [B, 6, H, W, 3] RGB in CAMERAS order,
+            intrinsics float32 [B, 6, 3, 3] (for that H × W),
+            cam2ego float32 [B, 6, 4, 4] camera (OpenCV) → current ego frame)
+      → (occupancy uint8 [B, 200, 200, 16] [x, y, z], 17 = free, density float32 [B, 200, 200, 16])
+
+i.e. the ONNX contract v1. :func:`checkpoint_predictor` runs a checkpoint's (EMA) weights in torch,
+:func:`onnx_predictor` an exported graph in onnxruntime (this path never imports torch). Inputs are built as in
+training (``train/dataset.py``): images as stored, each camera's intrinsics, ``cam2ego`` =
+``SampleRecord.cam2current_ego()`` (through each camera's own ego pose). Predictions and labels live in the current
+ego frame of the keyframe (the ego pose at the LiDAR timestamp).
 """
 from __future__ import annotations
 
 import sys
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from occflownet.data.index import load_index
+from occflownet.config import GRID
+from occflownet.data.index import SampleIndex, load_index
 from occflownet.data.loaders import load_occupancy, load_sample_images
 from occflownet.data.tables import DatasetError
 from occflownet.eval import OccupancyMetric, RayIoUMetric, scene_ray_origins
@@ -23,8 +40,10 @@ from occflownet.eval import OccupancyMetric, RayIoUMetric, scene_ray_origins
 Predictor = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple]
 
 
+# ----------------------------------------------------------------------------------------------- predictors
 def checkpoint_predictor(path) -> Predictor:
-    """The (EMA) weights of an occflownet checkpoint, run in torch."""
+    """The weights of an occflownet checkpoint (training stores the EMA weights there), run in torch on the CPU.
+    Raises CheckpointError (a ValueError) naming the file if it is missing or unusable."""
     import torch
 
     from occflownet.model.checkpoint import load_checkpoint
@@ -34,57 +53,195 @@ def checkpoint_predictor(path) -> Predictor:
 
     def predict(images, intrinsics, cam2ego):
         with torch.inference_mode():
-            occ, dens = model.inference(torch.from_numpy(images)[None], torch.from_numpy(intrinsics)[None],
-                                        torch.from_numpy(cam2ego)[None])
-        return occ[0].numpy(), dens[0].numpy()
+            occ, dens = model.inference(torch.from_numpy(images), torch.from_numpy(intrinsics),
+                                        torch.from_numpy(cam2ego))
+        return occ.numpy(), dens.numpy()
 
     return predict
 
 
-def onnx_predictor(path) -> Predictor:
-    """An exported model run by onnxruntime (no torch import on this path)."""
+def onnx_predictor(path, threads: int | None = None) -> Predictor:
+    """An exported model run by onnxruntime (``threads`` intra-op threads, default all cores); no torch import.
+    FileNotFoundError / ValueError naming the file if it is missing or cannot be loaded."""
     from occflownet.inference_io import create_session, run_session
 
-    session = create_session(path)
+    session = create_session(path, threads)
     return lambda images, intrinsics, cam2ego: run_session(session, images, intrinsics, cam2ego)
 
 
-def evaluate(dataroot, predict: Predictor, version: str | None = None, split: str = "val",
-             save_predictions=None, max_samples: int | None = None, rayiou: bool = True,
-             progress: bool = True) -> dict:
-    """Evaluate ``predict`` on ``split`` of a prepared root; returns the JSON-ready result dict."""
-    from tqdm import tqdm
+# ----------------------------------------------------------------------------------------------- samples
+@dataclass(frozen=True)
+class EvalSamples:
+    """The samples one evaluation runs over (all checked to have Occ3D labels)."""
 
+    dataroot: Path
+    index: SampleIndex
+    split: str
+    positions: np.ndarray    # int64 [N] positions in ``index``, scene order, time order within a scene
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+
+def select_samples(dataroot, version: str | None = None, split: str = "val",
+                   max_samples: int | None = None) -> EvalSamples:
+    """The samples of ``split`` (the first ``max_samples`` of them if given) of a prepared root.
+
+    Errors (DatasetError / KeyError) name the problem: no index (run ``occflownet prepare``), an unknown split (lists
+    the available ones), an empty selection, or samples without Occ3D labels (no ``gts/<scene>/`` directory when
+    the index was written, or the labels file missing now) — evaluation needs every label, nothing is skipped."""
     dataroot = Path(dataroot)
+    if max_samples is not None and max_samples < 1:
+        raise ValueError(f"max_samples must be at least 1, got {max_samples}")
     index = load_index(dataroot, version)
     positions = index.split_positions(split)
     if max_samples is not None:
         positions = positions[:max_samples]
     if len(positions) == 0:
-        raise DatasetError(f"split '{split}' of {dataroot} has no samples")
-    missing = [index.tokens[p] for p in positions if index[int(p)].occupancy_path is None]
+        raise DatasetError(f"split '{split}' of {dataroot} ({index.version}) has no samples")
+    unlabeled, missing = [], []
+    for p in positions:
+        sample = index[int(p)]
+        if sample.occupancy_path is None:
+            unlabeled.append(f"{sample.token} ({sample.scene_name})")
+        elif not (dataroot / sample.occupancy_path).is_file():
+            missing.append(str(dataroot / sample.occupancy_path))
+    problems = []
+    if unlabeled:
+        problems.append(f"{len(unlabeled)} have no Occ3D labels in the index (their scene had no gts/<scene>/ "
+                        f"directory when `occflownet prepare` ran): {_first(unlabeled)}")
     if missing:
-        raise DatasetError(f"{len(missing)} samples of split '{split}' have no Occ3D labels under "
-                           f"{dataroot / 'gts'} (first: {missing[0]}): evaluation needs them")
-    out_dir = Path(save_predictions) if save_predictions else None
+        problems.append(f"{len(missing)} have their Occ3D labels file missing: {_first(missing)}")
+    if problems:
+        raise DatasetError(f"cannot evaluate split '{split}' of {dataroot}: of {len(positions)} samples, "
+                           + "; ".join(problems))
+    return EvalSamples(dataroot, index, split, positions)
+
+
+def _first(items: list[str], n: int = 5) -> str:
+    return ", ".join(items[:n]) + (f", ... ({len(items) - n} more)" if len(items) > n else "")
+
+
+# ----------------------------------------------------------------------------------------------- the run
+@dataclass
+class _Loaded:
+    """Inputs and labels of consecutive samples whose images share one size."""
+
+    positions: list
+    tokens: list
+    images: np.ndarray        # uint8 [B, 6, H, W, 3]
+    intrinsics: np.ndarray    # float32 [B, 6, 3, 3]
+    cam2ego: np.ndarray       # float32 [B, 6, 4, 4]
+    labels: list              # B Occupancy
+
+
+def _load(samples: EvalSamples, positions) -> list[_Loaded]:
+    """Load a batch; split it where the image size changes (a batch needs one H × W)."""
+    records = [samples.index[int(p)] for p in positions]
+    images = [load_sample_images(samples.dataroot, r) for r in records]
+    labels = [load_occupancy(samples.dataroot, r.occupancy_path) for r in records]
+    groups, start = [], 0
+    for i in range(1, len(records) + 1):
+        if i == len(records) or images[i].shape != images[start].shape:
+            part = slice(start, i)
+            groups.append(_Loaded(
+                positions=[int(p) for p in positions[part]], tokens=[r.token for r in records[part]],
+                images=np.stack(images[part]),
+                intrinsics=np.stack([r.intrinsics for r in records[part]]).astype(np.float32),
+                cam2ego=np.stack([r.cam2current_ego() for r in records[part]]).astype(np.float32),
+                labels=labels[part]))
+            start = i
+    return groups
+
+
+def _checked_outputs(out, batch: _Loaded) -> tuple[np.ndarray, np.ndarray]:
+    """The predictor's (occupancy, density), checked against the contract; error naming the batch's samples."""
+    b = len(batch.tokens)
+    where = f"predictor output for samples {', '.join(batch.tokens)}"
+    if not isinstance(out, (tuple, list)) or len(out) != 2:
+        raise ValueError(f"{where}: expected (occupancy, density), got {type(out).__name__}")
+    occupancy, density = np.asarray(out[0]), np.asarray(out[1])
+    want = (b, *GRID.shape)
+    if occupancy.shape != want or density.shape != want:
+        raise ValueError(f"{where}: expected occupancy and density of shape {want}, got {occupancy.shape} and "
+                         f"{density.shape}")
+    if not np.issubdtype(occupancy.dtype, np.integer):
+        raise ValueError(f"{where}: occupancy must hold integer classes, got {occupancy.dtype}")
+    return occupancy.astype(np.uint8, copy=False), density.astype(np.float32, copy=False)
+
+
+def _save(out_dir: Path, token: str, occupancy: np.ndarray, density: np.ndarray) -> None:
+    np.savez_compressed(out_dir / f"{token}.npz", occupancy=occupancy, density=density)
+
+
+def evaluate(samples: EvalSamples, predict: Predictor, *, batch_size: int = 1, save_predictions=None,
+             rayiou: bool = True, progress: bool = True) -> dict:
+    """Run ``predict`` over ``samples`` (batches of ``batch_size``) and return the JSON-ready result::
+
+        {"dataroot", "version", "split", "samples", "batch_size",
+         "occupancy": OccupancyMetric.compute() (camera_mask and all_voxels: miou, miou_static, miou_dynamic,
+                      geometry_iou, iou_per_class, voxels, confusion),
+         "rayiou": RayIoUMetric.compute() (rayiou, rayiou@1, rayiou@2, rayiou@4, iou_per_class, ...) or None,
+         "timing": {"seconds", "load_seconds", "predict_seconds", "metric_seconds", "samples_per_second"}}
+
+    Ray origins per sample: the LiDAR origins of its scene's keyframes moved into its current ego frame
+    (``scene_ray_origins`` with the index's LiDAR sensor2ego and ego2global at the LiDAR timestamps).
+    ``save_predictions``: a folder that receives ``<sample token>.npz`` with ``occupancy`` uint8 [200, 200, 16]
+    and ``density`` float32 [200, 200, 16]. Loading the next batch and writing predictions run on background
+    threads while the model and the metrics work."""
+    from tqdm import tqdm
+
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be at least 1, got {batch_size}")
+    out_dir = Path(save_predictions) if save_predictions is not None else None
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
-    occ_metric, ray_metric = OccupancyMetric(), RayIoUMetric() if rayiou else None
-    a = index.arrays
-    for p in tqdm(positions, desc="eval", unit="sample", file=sys.stderr, disable=not progress):
-        sample = index[int(p)]
-        images = load_sample_images(dataroot, sample)
-        occupancy, density = predict(images, sample.intrinsics.astype(np.float32),
-                                     sample.cam2current_ego().astype(np.float32))
-        gt = load_occupancy(dataroot, sample.occupancy_path)
-        occ_metric.update(occupancy, gt.semantics, gt.mask_camera)
-        if ray_metric is not None:
-            start, stop = index.scene_range(int(p))
-            origins = scene_ray_origins(a["lidar_sensor2ego"][start:stop], a["lidar_ego2global"][start:stop],
-                                        int(p) - start)
-            ray_metric.update(occupancy, gt.semantics, origins)
-        if out_dir is not None:
-            np.savez_compressed(out_dir / f"{sample.token}.npz", occupancy=np.asarray(occupancy, np.uint8),
-                                density=np.asarray(density, np.float32))
-    return {"dataroot": str(dataroot), "version": index.version, "split": split, "samples": int(len(positions)),
-            "occupancy": occ_metric.compute(), "rayiou": ray_metric.compute() if ray_metric is not None else None}
+    occ_metric, ray_metric = OccupancyMetric(), (RayIoUMetric() if rayiou else None)
+    lidar2ego, ego2global = samples.index.arrays["lidar_sensor2ego"], samples.index.arrays["lidar_ego2global"]
+    batches = [samples.positions[i:i + batch_size] for i in range(0, len(samples), batch_size)]
+    t_start, t_load, t_predict, t_metric = time.perf_counter(), 0.0, 0.0, 0.0
+    saves = []
+    with ThreadPoolExecutor(max_workers=1) as loader, ThreadPoolExecutor(max_workers=1) as writer, \
+            tqdm(total=len(samples), desc="eval", unit="sample", file=sys.stderr, disable=not progress) as bar:
+        pending = loader.submit(_load, samples, batches[0])
+        for b in range(len(batches)):
+            t0 = time.perf_counter()
+            groups = pending.result()
+            t_load += time.perf_counter() - t0            # time spent waiting for data (not hidden by prefetch)
+            if b + 1 < len(batches):
+                pending = loader.submit(_load, samples, batches[b + 1])
+            for batch in groups:
+                t0 = time.perf_counter()
+                occupancy, density = _checked_outputs(predict(batch.images, batch.intrinsics, batch.cam2ego), batch)
+                t_predict += time.perf_counter() - t0
+                for i, (position, token, gt) in enumerate(zip(batch.positions, batch.tokens, batch.labels)):
+                    if out_dir is not None:
+                        saves.append(writer.submit(_save, out_dir, token, occupancy[i], density[i]))
+                    t0 = time.perf_counter()
+                    try:
+                        occ_metric.update(occupancy[i], gt.semantics, gt.mask_camera)
+                        if ray_metric is not None:
+                            start, stop = samples.index.scene_range(position)
+                            origins = scene_ray_origins(lidar2ego[start:stop], ego2global[start:stop],
+                                                        position - start)
+                            ray_metric.update(occupancy[i], gt.semantics, origins)
+                    except ValueError as exc:
+                        raise ValueError(f"sample {token}: {exc}") from exc
+                    t_metric += time.perf_counter() - t0
+                    bar.update(1)
+            written = [f for f in saves if f.done()]
+            for f in written:                                  # a failed write stops the run now
+                f.result()
+            saves = [f for f in saves if f not in written]
+        for f in saves:
+            f.result()
+    seconds = time.perf_counter() - t_start
+    return {
+        "dataroot": str(samples.dataroot), "version": samples.index.version, "split": samples.split,
+        "samples": len(samples), "batch_size": batch_size,
+        "occupancy": occ_metric.compute(),
+        "rayiou": ray_metric.compute() if ray_metric is not None else None,
+        "timing": {"seconds": round(seconds, 3), "load_seconds": round(t_load, 3),
+                   "predict_seconds": round(t_predict, 3), "metric_seconds": round(t_metric, 3),
+                   "samples_per_second": round(len(samples) / seconds, 3) if seconds > 0 else None},
+    }
