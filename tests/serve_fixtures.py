@@ -174,3 +174,34 @@ def npy_bytes(array: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, array)
     return buf.getvalue()
+
+
+def wait_ready(base: str, timeout: float = 30.0, proc=None) -> None:
+    """Poll ``{base}/readyz`` until it answers 200; fail if ``proc`` (a server subprocess) exits first."""
+    import time
+
+    import httpx
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            raise AssertionError(f"server exited with {proc.returncode}: {proc.stderr.read()}")
+        try:
+            if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.05)
+    raise AssertionError(f"{base} not ready after {timeout} s")
+
+
+def stop_server(proc, timeout: float = 20.0) -> None:
+    """SIGTERM a server subprocess, SIGKILL it if it does not exit within ``timeout`` seconds."""
+    import subprocess
+
+    proc.terminate()
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()

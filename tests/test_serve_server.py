@@ -14,7 +14,7 @@ import httpx
 import numpy as np
 import pytest
 import uvicorn
-from serve_fixtures import build_fake_model, image_files, synthetic_images
+from serve_fixtures import build_fake_model, image_files, stop_server, synthetic_images, wait_ready
 
 from serve.app import create_app
 from serve.model_runtime import ModelRuntime
@@ -51,20 +51,6 @@ def running_server(app):
     finally:
         server.should_exit = True
         thread.join(10)
-
-
-def wait_ready(base: str, timeout: float = 30.0, proc=None) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if proc is not None and proc.poll() is not None:
-            raise AssertionError(f"server exited with {proc.returncode}: {proc.stderr.read()}")
-        try:
-            if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.05)
-    raise AssertionError(f"{base} not ready after {timeout} s")
 
 
 def post_ok(base: str, **kw) -> np.ndarray:
@@ -186,10 +172,5 @@ def test_cli_serves_with_workers(model_path, workers):
                                           timeout=30).content, np.uint8) for _ in range(3)]
         assert all(g.size == 640_000 and np.array_equal(g, grids[0]) for g in grids)
     finally:
-        proc.terminate()
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_server(proc)
     assert proc.returncode in (0, -15), proc.stderr.read()

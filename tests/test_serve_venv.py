@@ -13,13 +13,12 @@ import shutil
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
-from serve_fixtures import build_fake_model, image_files, synthetic_images
+from serve_fixtures import build_fake_model, image_files, stop_server, synthetic_images, wait_ready
 
 REPO = Path(__file__).resolve().parents[1]
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "occflownet"
@@ -97,16 +96,7 @@ def test_serving_venv_has_no_torch_and_serves(serve_venv, tmp_path):
                             stderr=subprocess.PIPE, text=True)
     base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            assert proc.poll() is None, f"server exited: {proc.stderr.read()}"
-            assert time.monotonic() < deadline, "server not ready after 60 s"
-            try:
-                if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
+        wait_ready(base, timeout=60, proc=proc)
         r = httpx.post(f"{base}/v1/occupancy", files=image_files(synthetic_images((96, 54))),
                        headers={"Accept": "application/octet-stream"}, timeout=30)
         assert r.status_code == 200, r.text
@@ -116,9 +106,4 @@ def test_serving_venv_has_no_torch_and_serves(serve_venv, tmp_path):
                                   "print('torch' in sys.modules)"], capture_output=True, text=True, cwd=tmp_path)
         assert str(serve_venv) in modules.stdout and modules.stdout.strip().endswith("False"), modules
     finally:
-        proc.terminate()
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_server(proc)
