@@ -88,8 +88,6 @@ class TrainingSamples(Dataset):
         if self.cfg.depth_loss:
             item["depth_points"] = torch.from_numpy(self._depth_points(position, rng))
         if self.cfg.uses_3d:
-            if sample.occupancy_path is None:
-                raise FileNotFoundError(f"sample {sample.token} has no Occ3D labels (gts/) but 3D supervision is on")
             occ = load_occupancy(self.dataroot, sample.occupancy_path)
             item["occ_semantics"] = torch.from_numpy(occ.semantics)                       # uint8 [200, 200, 16]
             item["occ_mask"] = torch.from_numpy(occ.mask_camera.astype(bool))

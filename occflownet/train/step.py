@@ -7,6 +7,8 @@ indexes the stacked [N, X, Y, Z] volumes.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from occflownet import losses as L
@@ -26,8 +28,9 @@ class LossComputer:
         self.render_cfg = render_cfg or RenderConfig(density_scale=cfg.density_scale)
         self.class_weights = class_weights
         self.depth_bins = torch.tensor(model_cfg.depth_bin_centers(), dtype=torch.float32)
-        self.loss_cfg = L.LossConfig(mode=cfg.supervision, depth_weight=0.05 if cfg.depth_loss else 0.0,
-                                     lidar_depth_weight=0.05 if cfg.depth_loss else 0.0)
+        self.loss_cfg = L.LossConfig(mode=cfg.supervision)
+        if not cfg.depth_loss:  # "semantics only": no rendered-depth and no LiDAR-depth term
+            self.loss_cfg = replace(self.loss_cfg, depth_weight=0.0, lidar_depth_weight=0.0)
 
     def volumes(self, density: torch.Tensor, logits: torch.Tensor, batch: dict, device):
         """Stacked per-frame volumes (density [N, X, Y, Z], logits [N, X, Y, Z, 17]) for the batch's rays."""
@@ -39,7 +42,8 @@ class LossComputer:
             return warp_volumes(density, logits, source, packed, mover=self.cfg.flow_mover)
         dens = density[source]
         if self.cfg.disocclusion and bool(temporal.any()):
-            dens = torch.where(temporal[:, None, None, None], disocclude(dens, logits[source]), dens)
+            # disocclude each sample's volume once, then give its copy to the temporal volumes
+            dens = torch.where(temporal[:, None, None, None], disocclude(density, logits)[source], dens)
         return dens, logits[source]
 
     def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None) -> dict:
