@@ -139,14 +139,16 @@ def main() -> None:
     methods = {
         "naive": lambda: naive_render(density, logits, origins, directions, cfg, torch.Generator().manual_seed(7)),
         "grid_sample": lambda: _ours(density, logits, origins, directions, RenderConfig(lookup="grid_sample")),
-        "gather": lambda: _ours(density, logits, origins, directions, cfg),
+        "gather": lambda: _ours(density, logits, origins, directions, RenderConfig(lookup="gather")),
+        "numba": lambda: _ours(density, logits, origins, directions, RenderConfig(lookup="numba")),
+        "numba2": lambda: _ours(density, logits, origins, directions, RenderConfig(lookup="numba", intra_op_threads=2)),
     }
     results = {}
     for name, render in methods.items():
         seconds, results[name] = timed(lambda: step(render), args.repeats)
         print(f"{name:12s} {seconds:7.2f} s  {args.rays * per_ray / seconds / 1e6:6.2f} M samples/s")
         results[name] = (seconds, *results[name])
-    base, fast = results["naive"], results["gather"]
+    base, fast = results["naive"], results["numba"]
     print(f"speed-up gather vs naive: {base[0] / fast[0]:.1f}x; vs grid_sample path: "
           f"{results['grid_sample'][0] / fast[0]:.1f}x")
     print(f"max |depth diff| {float((base[1] - fast[1]).abs().max()):.2e} m, max |semantics diff| "

@@ -33,7 +33,7 @@ from occflownet.render.fast_render import FastRender, cdf_from_sigma
 from occflownet.render.lookup import PaddedTables, grid_sample_lookup
 from occflownet.render.sampling import importance_sample, intervals_from_samples, uniform_jittered_edges
 
-LOOKUPS = ("gather", "grid_sample")
+LOOKUPS = ("auto", "numba", "gather", "grid_sample")
 
 
 @dataclass(frozen=True)
@@ -146,6 +146,16 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
 
     edges = uniform_jittered_edges(n_rays, cfg.n_coarse, cfg.near, cfg.far, jitter=cfg.coarse_jitter,
                                    generator=generator, device=device, dtype=dtype)
+    if cfg.lookup == "numba" or (cfg.lookup == "auto" and device.type == "cpu"):
+        from occflownet.render.numba_render import NumbaRender
+        if cfg.fine_stratified:
+            bias = torch.rand((n_rays,), generator=generator, device=device, dtype=dtype)
+        else:
+            bias = torch.full((n_rays,), 0.5, device=device, dtype=dtype)
+        depth, semantics, weight_sum, weights, sigma, t_samples, t_starts, t_ends = NumbaRender.apply(
+            density, logits.reshape(-1, channels), origins, directions, edges, batch_index, bias, cfg)
+        return RenderOutput(depth=depth, semantics=semantics, weight_sum=weight_sum, weights=weights, sigma=sigma,
+                            t_samples=t_samples, t_starts=t_starts, t_ends=t_ends)
     if cfg.lookup == "gather":
         sigma_table = PaddedTables.from_volumes(density, grid).sigma
         depth, semantics, weight_sum, weights, sigma, t_samples, t_starts, t_ends = FastRender.apply(
