@@ -11,8 +11,12 @@ Printed: rendered samples per second (n_coarse + n_fine per ray) for
 - ``naive``: F.grid_sample on the [1, 18, Z, Y, X] volume (σ + 17 logits) at all 150 samples, with autograd
   through both lookups, then the same weights/depth/semantics formulas;
 - ``grid_sample``: occflownet's renderer with ``lookup="grid_sample"`` (coarse pass σ-only without grad);
-- ``gather``: occflownet's renderer, default fast path;
-and the max abs difference of depth and semantics between the fast path and the naive one (same samples).
+- ``numba``: occflownet's renderer on CPU (``lookup="auto"``: the numba kernels), with as many threads as torch
+  uses for the naive one (``--threads``, default: torch's default), and ``numba-1t`` with one thread;
+then the speed-up, and the accuracy of depth and semantics for naive and numba (both float32) against the naive
+renderer run in float64 on the same rays (the exact answer up to float64 rounding), plus their difference to
+each other. The coarse-to-fine draws invert a CDF that is flat in places, so float32 rounding moves a few fine
+samples by up to ~1 mm in either renderer; the float64 comparison shows which one is closer to the exact render.
 """
 from __future__ import annotations
 
@@ -83,8 +87,8 @@ def load_scene(n_rays: int, rng: np.random.Generator):
 def naive_render(density, logits, origins, directions, cfg: RenderConfig, generator):
     """The straightforward renderer: one 18-channel grid_sample lookup for every sample, autograd throughout."""
     volume = torch.cat([density.unsqueeze(-1), logits], -1)[0].permute(3, 2, 1, 0).unsqueeze(0)  # [1,18,Z,Y,X]
-    extent = torch.tensor(GRID.shape, dtype=torch.float32) * GRID.voxel_size
-    lower = torch.tensor(GRID.lower)
+    extent = torch.tensor(GRID.shape, dtype=origins.dtype) * GRID.voxel_size
+    lower = torch.tensor(GRID.lower, dtype=origins.dtype)
 
     def lookup(t):  # t [R, N] → values [R, N, 18]
         p = origins[:, None] + t[..., None] * directions[:, None]
@@ -93,7 +97,7 @@ def naive_render(density, logits, origins, directions, cfg: RenderConfig, genera
         return out.reshape(18, *t.shape).permute(1, 2, 0)
 
     n = origins.shape[0]
-    edges = uniform_jittered_edges(n, cfg.n_coarse, cfg.near, cfg.far, generator=generator)
+    edges = uniform_jittered_edges(n, cfg.n_coarse, cfg.near, cfg.far, generator=generator).to(origins.dtype)
     coarse = lookup(0.5 * (edges[:, 1:] + edges[:, :-1]))[..., 0]
     tau = coarse.detach() * (edges[:, 1:] - edges[:, :-1])
     cdf = torch.cat([tau.new_zeros(n, 1), 1 - torch.exp(-torch.cumsum(tau, -1))], -1)
@@ -117,7 +121,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rays", type=int, default=32768)
     ap.add_argument("--repeats", type=int, default=2, help="timed runs per method (best is reported)")
-    ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="threads for the naive renderer (torch) and for numba (0: torch's default)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -136,23 +141,32 @@ def main() -> None:
         (depth.mean() + sem.square().mean()).backward()
         return depth.detach(), sem.detach()
 
+    threads = torch.get_num_threads()
     methods = {
         "naive": lambda: naive_render(density, logits, origins, directions, cfg, torch.Generator().manual_seed(7)),
         "grid_sample": lambda: _ours(density, logits, origins, directions, RenderConfig(lookup="grid_sample")),
-        "gather": lambda: _ours(density, logits, origins, directions, RenderConfig(lookup="gather")),
-        "numba": lambda: _ours(density, logits, origins, directions, RenderConfig(lookup="numba")),
-        "numba2": lambda: _ours(density, logits, origins, directions, RenderConfig(lookup="numba", intra_op_threads=2)),
+        "numba": lambda: _ours(density, logits, origins, directions, RenderConfig(threads=threads)),
+        "numba-1t": lambda: _ours(density, logits, origins, directions, RenderConfig(threads=1)),
     }
+    _ours(density, logits, origins, directions, RenderConfig(threads=1))  # compile / load the kernels untimed
     results = {}
     for name, render in methods.items():
         seconds, results[name] = timed(lambda: step(render), args.repeats)
         print(f"{name:12s} {seconds:7.2f} s  {args.rays * per_ray / seconds / 1e6:6.2f} M samples/s")
         results[name] = (seconds, *results[name])
-    base, fast = results["naive"], results["numba"]
-    print(f"speed-up gather vs naive: {base[0] / fast[0]:.1f}x; vs grid_sample path: "
-          f"{results['grid_sample'][0] / fast[0]:.1f}x")
-    print(f"max |depth diff| {float((base[1] - fast[1]).abs().max()):.2e} m, max |semantics diff| "
-          f"{float((base[2] - fast[2]).abs().max()):.2e}; mean weight sum "
+    base = results["naive"]
+    print(f"speed-up numba vs naive ({threads} threads each): {base[0] / results['numba'][0]:.1f}x; numba 1 thread "
+          f"vs naive {threads} threads: {base[0] / results['numba-1t'][0]:.1f}x; numba vs grid_sample path: "
+          f"{results['grid_sample'][0] / results['numba'][0]:.1f}x")
+    exact = naive_render(density.detach().double(), logits.detach().double(), origins.double(),
+                         directions.double(), cfg, torch.Generator().manual_seed(7))
+    for name in ("naive", "numba"):
+        print(f"{name:6s} float32 vs exact (float64 naive): max |depth diff| "
+              f"{float((results[name][1] - exact[0]).abs().max()):.2e} m, max |semantics diff| "
+              f"{float((results[name][2] - exact[1].detach()).abs().max()):.2e}")
+    fast = results["numba"]
+    print(f"numba vs naive (both float32): max |depth diff| {float((base[1] - fast[1]).abs().max()):.2e} m, max "
+          f"|semantics diff| {float((base[2] - fast[2]).abs().max()):.2e}; mean weight sum "
           f"{float(_ours_ws(density, logits, origins, directions, cfg)):.3f}")
 
 

@@ -151,13 +151,13 @@ def test_weights_match_nerfacc():
 
 
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-9), (torch.float32, 1e-4)])
-def test_fast_path_matches_grid_sample_reference_values_and_gradients(dtype, tol):
+def test_numba_path_matches_grid_sample_reference_values_and_gradients(dtype, tol):
     density, logits, origins, dirs, volume = _random_case(dtype=dtype)
     coeff = torch.randn(3, generator=torch.Generator().manual_seed(9), dtype=dtype)
     results = []
-    for lookup in ("gather", "grid_sample"):
+    for lookup in ("numba", "grid_sample"):
         d, lg = density.clone().requires_grad_(True), logits.clone().requires_grad_(True)
-        cfg = RenderConfig(far=12.0, grid=SMALL, lookup=lookup, chunk_rays=64, density_scale=1.5)
+        cfg = RenderConfig(far=12.0, grid=SMALL, lookup=lookup, density_scale=1.5)
         out = render_rays(d, lg, origins, dirs, cfg, torch.Generator().manual_seed(3), volume)
         loss = coeff[0] * out.depth.sum() + coeff[1] * out.semantics.square().sum() + coeff[2] * out.weight_sum.sum()
         loss.backward()
@@ -167,12 +167,38 @@ def test_fast_path_matches_grid_sample_reference_values_and_gradients(dtype, tol
         assert float((fast - ref).detach().abs().max()) <= tol * scale
 
 
-def test_chunking_does_not_change_results():
-    density, logits, origins, dirs, volume = _random_case(n_rays=100)
-    outs = [render_rays(density, logits, origins, dirs, RenderConfig(far=12.0, grid=SMALL, chunk_rays=c),
-                        torch.Generator().manual_seed(3), volume) for c in (7, 1000)]
-    assert torch.allclose(outs[0].depth, outs[1].depth, atol=1e-6)
-    assert torch.allclose(outs[0].semantics, outs[1].semantics, atol=1e-6)
+@pytest.mark.parametrize("stratified,uniform_mix", [(False, 0.0), (True, 0.2)])
+def test_numba_path_is_bit_identical_for_any_thread_count(stratified, uniform_mix):
+    # the kernels split rays (forward) and voxel slabs (gradient scatter) across threads; no sum may depend on it
+    grid = Grid(lower=(-4.0, -4.0, -1.0), upper=(12.0, 4.0, 2.2), voxel_size=0.4, shape=(40, 20, 8))
+    gen = torch.Generator().manual_seed(5)
+    density = torch.rand(3, *grid.shape, generator=gen)
+    logits = torch.randn(3, *grid.shape, NUM_CLASSES, generator=gen)
+    origins = (torch.rand(300, 3, generator=gen) - 0.5) * torch.tensor([10.0, 6.0, 2.0])
+    dirs = torch.nn.functional.normalize(torch.randn(300, 3, generator=gen), dim=1)
+    volume = torch.randint(0, 3, (300,), generator=gen)
+    results = []
+    for threads in (1, 2, 3):
+        d, lg = density.clone().requires_grad_(True), logits.clone().requires_grad_(True)
+        cfg = RenderConfig(far=15.0, grid=grid, lookup="numba", threads=threads, fine_stratified=stratified,
+                           uniform_mix=uniform_mix)
+        out = render_rays(d, lg, origins, dirs, cfg, torch.Generator().manual_seed(3), volume)
+        (out.depth.sum() + out.semantics.square().sum() + out.weight_sum.sum()).backward()
+        results.append((out.depth, out.semantics, out.t_samples, d.grad, lg.grad))
+    for other in results[1:]:
+        assert all(torch.equal(a, b) for a, b in zip(results[0], other))
+
+
+def test_auto_lookup_renders_cpu_tensors_with_numba(monkeypatch):
+    from occflownet.render import numba_render
+    calls = []
+    original = numba_render.NumbaRender.apply
+    monkeypatch.setattr(numba_render.NumbaRender, "apply", lambda *a: calls.append(1) or original(*a))
+    density, logits, origins, dirs, volume = _random_case(n_rays=4)
+    render_rays(density, logits, origins, dirs, RenderConfig(grid=SMALL), batch_index=volume)
+    assert calls == [1]
+    render_rays(density, logits, origins, dirs, RenderConfig(grid=SMALL, lookup="grid_sample"), batch_index=volume)
+    assert calls == [1]
 
 
 def test_batch_index_selects_the_volume():

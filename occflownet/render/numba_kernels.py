@@ -99,6 +99,7 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
         rows = np.empty(8, np.int64)
         cw = np.empty(8)
         cdf = np.empty(n_bins + 1)
+        ts = np.empty(n_fine)
         acc = np.zeros(8)
         sem = np.zeros(channels)
         ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
@@ -128,14 +129,13 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
             p0, p1 = max(p - 1, 0), min(p, n_bins)
             du = cdf[p1] - cdf[p0]
             frac = 0.5 if du < _FLAT else (u - cdf[p0]) / du
-            t_out[r, i] = edges[r, p0] + frac * (edges[r, p1] - edges[r, p0])
+            ts[i] = edges[r, p0] + frac * (edges[r, p1] - edges[r, p0])
         # intervals half-way between samples, outer edges half a gap out, clamped to [near, far]
         for i in range(n_fine):
-            t = t_out[r, i]
-            a_out[r, i] = max(t - 0.5 * (t_out[r, 1] - t_out[r, 0]), near) if i == 0 else \
-                0.5 * (t_out[r, i - 1] + t)
-            b_out[r, i] = min(t + 0.5 * (t - t_out[r, i - 1]), far) if i == n_fine - 1 else \
-                0.5 * (t + t_out[r, i + 1])
+            t = ts[i]
+            a_out[r, i] = max(t - 0.5 * (ts[1] - ts[0]), near) if i == 0 else 0.5 * (ts[i - 1] + t)
+            b_out[r, i] = min(t + 0.5 * (t - ts[i - 1]), far) if i == n_fine - 1 else 0.5 * (t + ts[i + 1])
+            t_out[r, i] = t
         # fine pass, run by run
         ci = cj = ck = -(1 << 30)
         optical = 0.0

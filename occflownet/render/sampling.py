@@ -36,6 +36,19 @@ def uniform_jittered_edges(n_rays: int, n_bins: int, near: float, far: float, *,
     return near + unit * (far - near)
 
 
+def cdf_from_sigma(edges: torch.Tensor, sigma: torch.Tensor, cfg) -> torch.Tensor:
+    """Coarse σ [R, M] at bins with edges [R, M + 1] → CDF [R, M + 1] = ``1 - T`` at the edges, optionally mixed
+    with a uniform CDF (``cfg``: a ``RenderConfig``; density_scale, uniform_mix, near, far)."""
+    tau = cfg.density_scale * sigma * (edges[:, 1:] - edges[:, :-1])
+    cdf = 1.0 - torch.exp(-torch.cumsum(tau, dim=-1))
+    cdf = torch.cat([cdf.new_zeros(cdf.shape[0], 1), cdf], dim=-1)
+    if cfg.uniform_mix > 0:
+        normalised = cdf / cdf[:, -1:].clamp(min=1e-12)
+        uniform = (edges - cfg.near) / (cfg.far - cfg.near)
+        cdf = (1.0 - cfg.uniform_mix) * normalised + cfg.uniform_mix * uniform
+    return cdf
+
+
 def importance_sample(edges: torch.Tensor, cdf: torch.Tensor, n_samples: int, *, stratified: bool = False,
                       generator: torch.Generator | None = None) -> torch.Tensor:
     """Distances [R, n_samples] drawn by inverting a piecewise-linear CDF, sorted along each ray.

@@ -19,21 +19,27 @@ Method (paper section 3.4 and the official code):
    T_i = exp(-Σ_{j<i} τ_j), w_i = T_i (1 - exp(-τ_i)); depth = Σ w_i (a_i + b_i)/2; semantics = Σ w_i s_i
    (raw logits; the softmax lives in the loss). Gradients flow to σ and the logits.
 
+Two implementations compute the same numbers (``RenderConfig.lookup``): ``"numba"``, compiled CPU kernels with
+a hand-written backward (``numba_render``), and ``"grid_sample"``, plain autograd through ``F.grid_sample``
+(the reference, and the right choice on a GPU). ``"auto"`` (default) picks numba for CPU tensors and grid_sample
+for CUDA ones.
+
 ``density_scale`` defaults to 1.0, the official behaviour (σ ∈ [0, 1] used directly as a density per metre).
 With it a fully occupied voxel has optical depth 0.4 and lets ~67 % of the light through: see docs/render.md.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import torch
 
 from occflownet.config import GRID, Grid
-from occflownet.render.fast_render import FastRender, cdf_from_sigma
-from occflownet.render.lookup import PaddedTables, grid_sample_lookup
-from occflownet.render.sampling import importance_sample, intervals_from_samples, uniform_jittered_edges
+from occflownet.render.lookup import grid_sample_lookup
+from occflownet.render.sampling import cdf_from_sigma, importance_sample, intervals_from_samples, \
+    uniform_jittered_edges
 
-LOOKUPS = ("auto", "numba", "gather", "grid_sample")
+LOOKUPS = ("auto", "numba", "grid_sample")
 
 
 @dataclass(frozen=True)
@@ -48,9 +54,8 @@ class RenderConfig:
     coarse_jitter: bool = True      # jitter the coarse bin edges (official: always, also at test time)
     fine_stratified: bool = False   # one U(0,1) offset per ray for the fine draws (official: False, mid-bin)
     uniform_mix: float = 0.0        # mix this fraction of a uniform pdf into the fine pdf (official: 0)
-    lookup: str = "gather"          # "gather" (fast, hand-written backward) or "grid_sample" (reference)
-    chunk_rays: int = 1024          # rays per chunk of the fast path (memory/cache; does not change results)
-    intra_op_threads: int = 1       # torch threads inside the fast path (0: torch's setting); see fast_render
+    lookup: str = "auto"            # "numba" (CPU kernels), "grid_sample" (reference, GPU) or "auto" (by device)
+    threads: int = 0                # numba threads (0: all cores); results do not depend on it
     grid: Grid = GRID
 
     def __post_init__(self):
@@ -62,10 +67,8 @@ class RenderConfig:
             raise ValueError(f"RenderConfig.density_scale must be > 0, got {self.density_scale}")
         if not 0.0 <= self.uniform_mix <= 1.0:
             raise ValueError(f"RenderConfig.uniform_mix must be in [0, 1], got {self.uniform_mix}")
-        if self.intra_op_threads < 0:
-            raise ValueError(f"RenderConfig.intra_op_threads must be >= 0, got {self.intra_op_threads}")
-        if self.chunk_rays < 1:
-            raise ValueError(f"RenderConfig.chunk_rays must be >= 1, got {self.chunk_rays}")
+        if self.threads < 0:
+            raise ValueError(f"RenderConfig.threads must be >= 0, got {self.threads}")
         if self.lookup not in LOOKUPS:
             raise ValueError(f"RenderConfig.lookup must be one of {LOOKUPS}, got {self.lookup!r}")
 
@@ -128,6 +131,27 @@ def _check_inputs(density, logits, origins, directions, batch_index, grid: Grid)
     return density, logits, batch_index
 
 
+def _use_numba(lookup: str, device: torch.device) -> bool:
+    """Whether to render with the numba kernels: always for "numba" (CPU tensors only), for "auto" on CPU when
+    numba is installed (it comes with the ``train`` extra; without it "auto" falls back to grid_sample)."""
+    if lookup == "grid_sample":
+        return False
+    if lookup == "numba":
+        if device.type != "cpu":
+            raise ValueError(f"RenderConfig.lookup='numba' renders CPU tensors only, got {device.type} tensors; "
+                             "use 'auto' or 'grid_sample'")
+        return True
+    if device.type != "cpu":
+        return False
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        warnings.warn("numba is not installed: rendering on CPU with the slow grid_sample path "
+                      "(pip install 'occflownet[train]' installs numba)", stacklevel=3)
+        return False
+    return True
+
+
 def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor,
                 cfg: RenderConfig = RenderConfig(), generator: torch.Generator | None = None,
                 batch_index: torch.Tensor | None = None) -> RenderOutput:
@@ -146,7 +170,7 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
 
     edges = uniform_jittered_edges(n_rays, cfg.n_coarse, cfg.near, cfg.far, jitter=cfg.coarse_jitter,
                                    generator=generator, device=device, dtype=dtype)
-    if cfg.lookup == "numba" or (cfg.lookup == "auto" and device.type == "cpu"):
+    if _use_numba(cfg.lookup, device):
         from occflownet.render.numba_render import NumbaRender
         if cfg.fine_stratified:
             bias = torch.rand((n_rays,), generator=generator, device=device, dtype=dtype)
@@ -156,15 +180,8 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
             density, logits.reshape(-1, channels), origins, directions, edges, batch_index, bias, cfg)
         return RenderOutput(depth=depth, semantics=semantics, weight_sum=weight_sum, weights=weights, sigma=sigma,
                             t_samples=t_samples, t_starts=t_starts, t_ends=t_ends)
-    if cfg.lookup == "gather":
-        sigma_table = PaddedTables.from_volumes(density, grid).sigma
-        depth, semantics, weight_sum, weights, sigma, t_samples, t_starts, t_ends = FastRender.apply(
-            sigma_table, logits.reshape(-1, channels), density.detach(), origins, directions, edges, batch_index,
-            cfg, generator)
-        return RenderOutput(depth=depth, semantics=semantics, weight_sum=weight_sum, weights=weights, sigma=sigma,
-                            t_samples=t_samples, t_starts=t_starts, t_ends=t_ends)
 
-    # Reference path: plain autograd through F.grid_sample lookups (slow on CPU; used by tests and benchmarks).
+    # Reference path: plain autograd through F.grid_sample lookups (GPU; on CPU the tests' and benchmarks' reference).
     with torch.no_grad():
         mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
         points = origins[:, None, :] + mids[..., None] * directions[:, None, :]
