@@ -201,6 +201,18 @@ def test_auto_lookup_renders_cpu_tensors_with_numba(monkeypatch):
     assert calls == [1]
 
 
+def test_auto_lookup_without_numba_falls_back_to_grid_sample_with_a_warning(monkeypatch):
+    import sys
+    density, logits, origins, dirs, volume = _random_case(n_rays=8)
+    expected = render_rays(density, logits, origins, dirs, RenderConfig(grid=SMALL, lookup="grid_sample"),
+                           torch.Generator().manual_seed(1), volume)
+    monkeypatch.setitem(sys.modules, "numba", None)  # makes `import numba` raise ImportError
+    with pytest.warns(UserWarning, match="numba is not installed"):
+        out = render_rays(density, logits, origins, dirs, RenderConfig(grid=SMALL), torch.Generator().manual_seed(1),
+                          volume)
+    assert torch.equal(out.depth, expected.depth)
+
+
 def test_batch_index_selects_the_volume():
     density, logits = _slab(15, 15, cls=5)
     empty = torch.zeros_like(density)
