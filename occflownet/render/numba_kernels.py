@@ -21,8 +21,9 @@ Backward (with e_i = ∂L/∂w_i = g_depth · m_i + g_wsum + g_sem · s_i and T_
   ∂L/∂τ_k = e_k T_{k+1} - Σ_{i>k} e_i w_i,  ∂L/∂σ_k = ∂L/∂τ_k · scale · δ_k,
   ∂L/∂logits[v] = Σ_rays g_sem · Σ_{runs, corners k at v} A_k.
 It runs in two kernels: ``sigma_sample_grads`` (rays in parallel, no shared writes) gives ∂L/∂σ_i per sample, and
-``scatter_grads`` (channels split across threads, so no two threads write the same element) accumulates the
-gradient tables.
+``scatter_grads`` (voxel slabs split across threads, so no two threads write the same element) accumulates the
+gradient tables. Every kernel takes ``order`` [R], the order in which rays are visited (neighbouring rays should
+touch neighbouring voxels so that the logits rows stay in cache); no result depends on it or on the thread count.
 """
 from __future__ import annotations
 
@@ -88,9 +89,11 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
     """Render every ray (see module docstring).
 
     In: sigma [n·X·Y·Z] (flat σ volumes), logits [n·X·Y·Z, C], origins/directions [R, 3] (ego frame of the grid,
-    unit directions), edges [R, M + 1] coarse bin edges, ray_volume [R] int64, bias [R] fine-draw offsets
-    (0.5 = mid-bin), lower [3], voxel_size, shape [3] int64.
+    unit directions; float64), edges [R, M + 1] coarse bin edges (float64), ray_volume [R] int64, order [R] int64,
+    bias [R] fine-draw offsets (0.5 = mid-bin), lower [3], voxel_size, shape [3] int64.
     Out (written): depth [R], semantics [R, C], weight_sum [R], weights/sigma_out/t_out/a_out/b_out [R, N].
+    The draws and intervals are computed in float64; the fine pass then reads the *stored* t, a, b (the output
+    dtype), exactly as the backward kernels will, so that forward and backward see the same samples.
     """
     n_rays, n_bins, n_fine, channels = origins.shape[0], edges.shape[1] - 1, t_out.shape[1], logits.shape[1]
     inv_voxel = 1.0 / voxel_size
@@ -183,7 +186,7 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
 @njit(parallel=True, cache=True)
 def sigma_sample_grads(logits, origins, directions, ray_volume, order, lower, voxel_size, shape, scale, weights,
                        sigma_s, t_s, a_s, b_s, g_depth, g_sem, g_wsum, g_sigma_s):
-    """∂L/∂σ_i for every fine sample → g_sigma_s [R, N] (written). Rays in parallel; reads only.
+    """∂L/∂σ_i for every fine sample → g_sigma_s [R, N] (written). Rays in parallel (in ``order``); reads only.
 
     weights, sigma_s, t_s, a_s, b_s [R, N] from ``render_forward``; g_depth [R], g_sem [R, C], g_wsum [R].
     """
