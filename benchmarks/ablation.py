@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -68,17 +69,34 @@ def main() -> int:
         if args.phase == "train":
             continue
         t_train = float((run / "train_seconds.txt").read_text())
+        predictions = run / "val_predictions"
         evaluate = [sys.executable, "-m", "occflownet", "eval", "--checkpoint", str(run / "checkpoints" / "last.pt"),
-                    "--dataroot", args.val, "--split", "all"]
+                    "--dataroot", args.val, "--split", "all", "--save-predictions", str(predictions)]
         res = subprocess.run(evaluate, check=True, capture_output=True, text=True)
         metrics = json.loads(res.stdout)
         record = {"row": row, "name": name, "options": extra, "steps": args.steps, "rays": args.rays,
-                  "train_seconds": round(t_train, 1), "metrics": metrics}
+                  "train_seconds": round(t_train, 1), "metrics": metrics, "density": density_stats(predictions)}
+        shutil.rmtree(predictions)
         with open(results_path, "a") as f:
             f.write(json.dumps(record) + "\n")
     if results_path.exists():
         print(table(results_path))
     return 0
+
+
+def density_stats(predictions: Path, tau: float = 0.35) -> dict:
+    """σ over every voxel of every saved validation prediction: quantiles and the fraction at or above τ (the
+    fusion threshold of a 2D-trained model), and the fraction the model calls occupied. Shows whether a row that
+    scores 0 has learned no geometry or only not yet crossed τ."""
+    import numpy as np
+
+    files = sorted(predictions.glob("*.npz"))
+    density = np.concatenate([np.load(f)["density"].ravel() for f in files])
+    occupied = np.mean(np.concatenate([np.load(f)["occupancy"].ravel() != 17 for f in files]))
+    q = np.quantile(density, [0.5, 0.99, 0.999])
+    return {"samples": len(files), "median": float(q[0]), "p99": float(q[1]), "p999": float(q[2]),
+            "max": float(density.max()), "frac_ge_tau": float(np.mean(density >= tau)), "tau": tau,
+            "frac_occupied": float(occupied)}
 
 
 def _pct(x):
@@ -96,6 +114,13 @@ def table(results_path: Path) -> str:
         lines.append(f"| {r['row']} | {r['name']} | {_pct(occ['miou'])} | {_pct(ray.get('rayiou'))} | "
                      f"{_pct(occ['miou_static'])} | {_pct(occ['miou_dynamic'])} | "
                      f"{_pct(m['occupancy']['all_voxels']['miou'])} | {r['train_seconds']:.0f} |")
+    lines += ["", "| # | σ median | σ p99 | σ p99.9 | σ max | voxels σ ≥ 0.35 | predicted occupied |",
+              "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        d = r.get("density")
+        if d:
+            lines.append(f"| {r['row']} | {d['median']:.3f} | {d['p99']:.3f} | {d['p999']:.3f} | {d['max']:.3f} | "
+                         f"{100 * d['frac_ge_tau']:.2f} % | {100 * d['frac_occupied']:.2f} % |")
     return "\n".join(lines)
 
 
