@@ -114,6 +114,13 @@ def table(results_path: Path) -> str:
         lines.append(f"| {r['row']} | {r['name']} | {_pct(occ['miou'])} | {_pct(ray.get('rayiou'))} | "
                      f"{_pct(occ['miou_static'])} | {_pct(occ['miou_dynamic'])} | "
                      f"{_pct(m['occupancy']['all_voxels']['miou'])} | {r['train_seconds']:.0f} |")
+    shown = ("driveable_surface", "sidewalk", "terrain", "manmade", "car", "truck")
+    lines += ["", "| # | geometry IoU | " + " | ".join(shown) + " |", "|---|---|" + "---|" * len(shown)]
+    for r in rows:
+        occ = r["metrics"]["occupancy"]["camera_mask"]
+        per_class = occ["iou_per_class"]
+        lines.append(f"| {r['row']} | {_pct(occ['geometry_iou'])} | "
+                     + " | ".join(_pct(per_class.get(name)) for name in shown) + " |")
     lines += ["", "| # | σ median | σ p99 | σ p99.9 | σ max | voxels σ ≥ 0.35 | predicted occupied |",
               "|---|---|---|---|---|---|---|"]
     for r in rows:
