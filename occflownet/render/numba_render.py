@@ -6,9 +6,8 @@ density [n, X, Y, Z] (σ), logits_flat [n·X·Y·Z, C] (channels-last logits, fl
 offsets → depth [R], semantics [R, C], weight_sum [R] (differentiable in density and logits), then weights,
 sigma, t_samples, t_starts, t_ends [R, N] (not differentiable). CPU tensors only; float32 or float64.
 
-``cfg.threads`` numba threads (0: numba's default, all cores). The kernels parallelise
-over rays (forward, σ gradients) and over channel groups (the gradient scatter); results do not depend on the
-thread count.
+``cfg.threads`` numba threads (0: numba's default, all cores). The kernels parallelise over rays (forward, σ
+gradients) and over voxel slabs (the gradient scatter); results do not depend on the thread count.
 """
 from __future__ import annotations
 
@@ -68,8 +67,8 @@ class NumbaRender(torch.autograd.Function):
         order = cache_friendly_order(origins, directions, ray_volume)
         arrays = [_np(density.reshape(-1)), _np(logits_flat)] + [_f64(x) for x in (origins, directions, edges)]
         with numba_threads(cfg.threads):
-            kernels.render_forward(*arrays, _np(ray_volume), order, _f64(bias), *_grid_args(cfg.grid), float(cfg.near), float(cfg.far),
-                                   float(cfg.density_scale), float(cfg.uniform_mix),
+            kernels.render_forward(*arrays, _np(ray_volume), order, _f64(bias), *_grid_args(cfg.grid),
+                                   float(cfg.near), float(cfg.far), float(cfg.density_scale), float(cfg.uniform_mix),
                                    *(x.numpy() for x in (depth, semantics, weight_sum, weights, sigma, t, a, b)))
         ctx.cfg = cfg
         ctx.order = order
