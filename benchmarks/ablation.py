@@ -90,9 +90,16 @@ def density_stats(predictions: Path, tau: float = 0.35) -> dict:
     scores 0 has learned no geometry or only not yet crossed τ."""
     import numpy as np
 
+    from occflownet.config import FREE
+
     files = sorted(predictions.glob("*.npz"))
-    density = np.concatenate([np.load(f)["density"].ravel() for f in files])
-    occupied = np.mean(np.concatenate([np.load(f)["occupancy"].ravel() != 17 for f in files]))
+    densities, occupied = [], 0
+    for f in files:
+        with np.load(f) as saved:
+            densities.append(saved["density"].ravel())
+            occupied += int(np.count_nonzero(saved["occupancy"] != FREE))
+    density = np.concatenate(densities)
+    occupied = occupied / density.size
     q = np.quantile(density, [0.5, 0.99, 0.999])
     return {"samples": len(files), "median": float(q[0]), "p99": float(q[1]), "p999": float(q[2]),
             "max": float(density.max()), "frac_ge_tau": float(np.mean(density >= tau)), "tau": tau,

@@ -18,6 +18,7 @@ from occflownet.config import DYNAMIC_FILTER_CLASSES
 from occflownet.data.loaders import load_occupancy, load_sample_images
 from occflownet.evaluate import select_samples
 from occflownet.model.checkpoint import load_checkpoint
+from occflownet.render.disocclusion import dynamic_mask
 
 
 def main() -> None:
@@ -29,7 +30,6 @@ def main() -> None:
     samples = select_samples(args.val, split="all")
     picks = np.linspace(0, len(samples) - 1, args.samples).round().astype(int)
     records = [samples.index[int(samples.positions[i])] for i in picks]
-    dynamic = torch.tensor(DYNAMIC_FILTER_CLASSES)
     print(f"{len(records)} keyframes of {args.val}; dynamic filter set {list(DYNAMIC_FILTER_CLASSES)}")
     for run in args.runs:
         model, _, _ = load_checkpoint(f"{run}/checkpoints/last.pt")
@@ -41,7 +41,7 @@ def main() -> None:
             cam2ego = torch.from_numpy(np.asarray(record.cam2current_ego(), np.float32))[None]
             with torch.inference_mode():
                 out = model(images, intrinsics, cam2ego)
-            is_dynamic = torch.isin(out["logits"][0].argmax(-1), dynamic).numpy()
+            is_dynamic = dynamic_mask(out["logits"][0]).numpy()  # the mask disocclusion uses
             above = (out["density"][0] >= model.cfg.threshold).numpy()
             mask = load_occupancy(samples.dataroot, record.occupancy_path).mask_camera.astype(bool)
             everywhere.append(is_dynamic.mean())
