@@ -82,6 +82,29 @@ def _sigma_at(sigma, vol, px, py, pz, lower, inv_voxel, shape, rows, cw):
     return s
 
 
+@njit(cache=True)
+def _add_cell_semantics(rows, acc, sem, logits):
+    """A ray leaves a cell: add Σ_k acc_k · logits[rows_k] to the semantics ``sem`` [C] (corners outside: -1)."""
+    for c in range(8):
+        if rows[c] >= 0 and acc[c] != 0.0:
+            for ch in range(sem.shape[0]):
+                sem[ch] += acc[c] * logits[rows[c], ch]
+
+
+@njit(cache=True)
+def _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits):
+    """A ray leaves a cell: add acc_s_k to grad_sigma[rows_k] and acc_w_k · g to grad_logits[rows_k] (either
+    table may be empty: not needed). Corners with row -1 are skipped."""
+    for c in range(8):
+        row = rows[c]
+        if row >= 0:
+            if grad_sigma.shape[0] > 0:
+                grad_sigma[row] += acc_s[c]
+            if grad_logits.shape[0] > 0 and acc_w[c] != 0.0:
+                for ch in range(g.shape[0]):
+                    grad_logits[row, ch] += acc_w[c] * g[ch]
+
+
 @njit(parallel=True, cache=True)
 def render_forward(sigma, logits, origins, directions, edges, ray_volume, order, bias, lower, voxel_size, shape,
                    near, far, scale, uniform_mix, depth, semantics, weight_sum, weights, sigma_out, t_out,
@@ -139,26 +162,17 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
             a_out[r, i] = max(t - 0.5 * (ts[1] - ts[0]), near) if i == 0 else 0.5 * (ts[i - 1] + t)
             b_out[r, i] = min(t + 0.5 * (t - ts[i - 1]), far) if i == n_fine - 1 else 0.5 * (t + ts[i + 1])
             t_out[r, i] = t
-        # fine pass, run by run
+        # fine pass, cell by cell (a run of samples in one cell shares its 8 corners)
         ci = cj = ck = -(1 << 30)
+        rows[:] = -1
         optical = 0.0
         dep = 0.0
         wsum = 0.0
-        for i in range(n_fine + 1):
-            if i < n_fine:
-                t = t_out[r, i]
-                i0, j0, k0, fx, fy, fz = _cell(ox + t * dx, oy + t * dy, oz + t * dz, lower, inv_voxel, shape)
-                same = i0 == ci and j0 == cj and k0 == ck
-            else:
-                same = False
-            if not same:
-                if i > 0:  # flush the finished run into the semantics
-                    for c in range(8):
-                        if rows[c] >= 0 and acc[c] != 0.0:
-                            for ch in range(channels):
-                                sem[ch] += acc[c] * logits[rows[c], ch]
-                if i == n_fine:
-                    break
+        for i in range(n_fine):
+            t = t_out[r, i]
+            i0, j0, k0, fx, fy, fz = _cell(ox + t * dx, oy + t * dy, oz + t * dz, lower, inv_voxel, shape)
+            if not (i0 == ci and j0 == cj and k0 == ck):
+                _add_cell_semantics(rows, acc, sem, logits)
                 ci, cj, ck = i0, j0, k0
                 _corners(vol, ci, cj, ck, shape, rows)
                 acc[:] = 0.0
@@ -177,6 +191,7 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
             wsum += w
             weights[r, i] = w
             sigma_out[r, i] = s
+        _add_cell_semantics(rows, acc, sem, logits)
         depth[r] = dep
         weight_sum[r] = wsum
         for ch in range(channels):
@@ -243,8 +258,7 @@ def scatter_grads(origins, directions, ray_volume, order, lower, voxel_size, sha
     number of groups; every group walks all rays but skips the cells it owns no corner of. Arrays as in
     ``sigma_sample_grads``; grad_sigma / grad_logits may be size 0 when not needed.
     """
-    n_rays, n_fine, channels = origins.shape[0], t_s.shape[1], g_sem.shape[1]
-    with_sigma, with_logits = grad_sigma.shape[0] > 0, grad_logits.shape[0] > 0
+    n_rays, n_fine = origins.shape[0], t_s.shape[1]
     inv_voxel = 1.0 / voxel_size
     for grp in prange(n_groups):
         rows = np.empty(8, np.int64)
@@ -253,31 +267,19 @@ def scatter_grads(origins, directions, ray_volume, order, lower, voxel_size, sha
         acc_s = np.zeros(8)
         for n in range(n_rays):
             r = order[n]
+            g = g_sem[r]
             ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
             dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
             vol = ray_volume[r]
             ci = cj = ck = -(1 << 30)
+            rows[:] = -1
             owned = False
-            for i in range(n_fine + 1):
-                if i < n_fine:
-                    t = t_s[r, i]
-                    i0, j0, k0, fx, fy, fz = _cell(ox + t * dx, oy + t * dy, oz + t * dz, lower, inv_voxel, shape)
-                    same = i0 == ci and j0 == cj and k0 == ck
-                else:
-                    same = False
-                if not same:
-                    if owned:  # flush the finished cell's owned corners
-                        for c in range(8):
-                            row = rows[c]
-                            if row >= 0:
-                                if with_sigma:
-                                    grad_sigma[row] += acc_s[c]
-                                a = acc_w[c]
-                                if with_logits and a != 0.0:
-                                    for ch in range(channels):
-                                        grad_logits[row, ch] += a * g_sem[r, ch]
-                    if i == n_fine:
-                        break
+            for i in range(n_fine):
+                t = t_s[r, i]
+                i0, j0, k0, fx, fy, fz = _cell(ox + t * dx, oy + t * dy, oz + t * dz, lower, inv_voxel, shape)
+                if not (i0 == ci and j0 == cj and k0 == ck):
+                    if owned:
+                        _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits)
                     ci, cj, ck = i0, j0, k0
                     _corners(vol, ci, cj, ck, shape, rows)
                     owned = False
@@ -293,3 +295,5 @@ def scatter_grads(origins, directions, ray_volume, order, lower, voxel_size, sha
                     for c in range(8):
                         acc_w[c] += w * cw[c]
                         acc_s[c] += gs * cw[c]
+            if owned:
+                _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits)
