@@ -37,3 +37,21 @@ def exported_tiny():
     frames = [FRAME] if frame_available() else []
     result = export_model(model, model.cfg, workdir() / "tiny.onnx", parity_frames=frames)
     return result.path, result, model
+
+
+@functools.lru_cache(maxsize=None)
+def trained_tiny_checkpoint() -> Path:
+    """A tiny checkpoint trained briefly (3D labels, 80 steps) on a 1-scene × 6-frame synthetic world, so that its
+    grid has occupied voxels of several classes: paths compared on it (torch vs onnxruntime, Python vs C++, two
+    runtimes) disagree visibly where they differ, unlike a random-init model whose grid is all free."""
+    from occflownet.cli import main
+
+    root = workdir() / "trained-world"
+    if not (root / "v1.0-trainval" / "sample.json").is_file():
+        assert main(["synth", "--out", str(root), "--scenes", "1", "--frames", "6", "--seed", "11",
+                     "--width", "320", "--height", "180", "--margin", "60", "--no-progress"]) == 0
+        assert main(["prepare", "--dataroot", str(root), "--quiet"]) == 0
+    run = workdir() / "trained-run"
+    assert main(["train", "--preset", "tiny", "--dataroot", str(root), "--out", str(run), "--split", "all",
+                 "--supervision", "3d", "--max-steps", "80", "--num-workers", "0", "--quiet", "--seed", "0"]) == 0
+    return run / "checkpoints" / "last.pt"
