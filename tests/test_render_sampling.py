@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import torch
 
-from occflownet.render.sampling import importance_sample, intervals_from_samples, uniform_jittered_edges
+from occflownet.render.sampling import cdf_from_sigma, importance_sample, intervals_from_samples, \
+    uniform_jittered_edges
 
 
 def test_uniform_edges_cover_near_far_and_stay_ordered():
@@ -58,3 +59,35 @@ def test_intervals_tile_between_samples():
     assert torch.allclose(a, torch.tensor([[0.5, 1.5, 3.0, 4.5]]))
     assert torch.allclose(b, torch.tensor([[1.5, 3.0, 4.5, 5.2]]))  # last edge clamped to far
     assert torch.equal(a[:, 1:], b[:, :-1])
+
+
+def test_cdf_is_the_official_one_built_from_nerfacc_transmittance():
+    # The official renderer: trans = nerfacc.render_weight_from_density(starts, ends, σ)[1] (exclusive T per bin),
+    # cdfs = 1 - cat([trans, 0]) — it ends at 1, so the last bin also holds the light that passes every bin.
+    import pytest
+
+    nerfacc = pytest.importorskip("nerfacc", reason="nerfacc (optional test dependency) is not installed")
+    from occflownet.render.volume_render import RenderConfig
+
+    gen = torch.Generator().manual_seed(0)
+    edges = uniform_jittered_edges(64, 50, 0.05, 40.0, generator=gen)
+    sigma = torch.where(torch.rand(64, 50, generator=gen) < 0.8, torch.zeros(64, 50), torch.rand(64, 50, generator=gen))
+    _, trans, _ = nerfacc.render_weight_from_density(edges[:, :-1], edges[:, 1:], sigma)
+    official = 1.0 - torch.cat([trans, torch.zeros_like(trans[:, :1])], dim=-1)
+    ours = cdf_from_sigma(edges, sigma, RenderConfig())
+    assert torch.allclose(ours, official, atol=1e-6)
+    assert torch.all(ours[:, -1] == 1.0)
+    # the transmitted mass T_M lies in the last bin: a ray through empty space draws every sample there
+    t = importance_sample(edges[:1], cdf_from_sigma(edges[:1], torch.zeros(1, 50), RenderConfig()), 10)
+    assert torch.all(t >= edges[0, -2]) and torch.all(t <= 40.0)
+
+
+def test_nerfacc_documented_example():
+    # nerfacc.importance_sampling's docstring: edges [0, 1] with cdf [0, 0.5] → samples [0.25, 0.75];
+    # edges [0, 1, 2] with cdf [0, 0.5, 1] → samples [0.5, 1.5]
+    t = importance_sample(torch.tensor([[0.0, 1.0]]), torch.tensor([[0.0, 0.5]]), 2)
+    assert torch.allclose(t, torch.tensor([[0.25, 0.75]]))
+    t = importance_sample(torch.tensor([[0.0, 1.0, 2.0]]), torch.tensor([[0.0, 0.5, 1.0]]), 2)
+    assert torch.allclose(t, torch.tensor([[0.5, 1.5]]))
+    a, b = intervals_from_samples(t, 0.0, 2.0)
+    assert torch.allclose(torch.cat([a[:, :1], b], -1), torch.tensor([[0.0, 1.0, 2.0]]))

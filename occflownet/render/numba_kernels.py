@@ -7,7 +7,8 @@ Same mathematics as ``volume_render`` (see its docstring; the tests compare valu
 - grid: voxel (i, j, k) of volume v is element ``((v * X + i) * Y + j) * Z + k`` of the flat σ array and row of
   the logits table [n * X * Y * Z, C]; continuous index ``u = (p - lower) / voxel_size - 0.5`` (voxel centres at
   integers); trilinear between the 8 centres around u; corners outside the grid read zero;
-- per ray: coarse σ at the midpoints of the jittered bins ``edges`` → CDF ``1 - T`` at the edges (optionally
+- per ray: coarse σ at the midpoints of the jittered bins ``edges`` → CDF ``1 - T`` at the edges, 1 at the last
+  (the official distribution; optionally
   mixed with a uniform CDF) → ``n_fine`` draws ``u_i = cdf_0 + (i + bias) / n · (cdf_M - cdf_0)`` inverted
   piecewise-linearly (nerfacc's ``importance_sampling``) → intervals half-way between samples → weights
   ``w_i = T_i (1 - exp(-τ_i))``, ``τ_i = scale · σ_i · δ_i``; depth ``Σ w_i (a_i + b_i) / 2``, semantics
@@ -131,15 +132,17 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
         ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
         dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
         vol = ray_volume[r]
-        # coarse pass: CDF = 1 - T at the bin edges
+        # coarse pass: CDF = 1 - T at the first M edges and 1 at the last (the official distribution: the light
+        # that passes through every bin is drawn in the last one; sampling.cdf_from_sigma)
         cdf[0] = 0.0
         optical = 0.0
-        for m in range(n_bins):
+        for m in range(n_bins - 1):
             e0, e1 = edges[r, m], edges[r, m + 1]
             mid = 0.5 * (e0 + e1)
             s = _sigma_at(sigma, vol, ox + mid * dx, oy + mid * dy, oz + mid * dz, lower, inv_voxel, shape, rows, cw)
             optical += scale * s * (e1 - e0)
             cdf[m + 1] = 1.0 - math.exp(-optical)
+        cdf[n_bins] = 1.0
         if uniform_mix > 0.0:
             total = max(cdf[n_bins], 1e-12)
             for m in range(n_bins + 1):

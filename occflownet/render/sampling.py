@@ -37,11 +37,17 @@ def uniform_jittered_edges(n_rays: int, n_bins: int, near: float, far: float, *,
 
 
 def cdf_from_sigma(edges: torch.Tensor, sigma: torch.Tensor, cfg) -> torch.Tensor:
-    """Coarse σ [R, M] at bins with edges [R, M + 1] → CDF [R, M + 1] = ``1 - T`` at the edges, optionally mixed
-    with a uniform CDF (``cfg``: a ``RenderConfig``; density_scale, uniform_mix, near, far)."""
+    """Coarse σ [R, M] at bins with edges [R, M + 1] → the fine-sampling CDF [R, M + 1], optionally mixed with a
+    uniform CDF (``cfg``: a ``RenderConfig``; density_scale, uniform_mix, near, far).
+
+    The official distribution (its renderer: ``cdfs = 1 - cat([T_exclusive, 0])``): ``1 - T_m`` at the first M
+    edges (``T_m`` = transmittance at the start of bin m) and exactly 1 at the last edge, so the light that passes
+    through every bin (``T_M``) is drawn in the last bin together with that bin's own absorption. A ray through
+    empty space therefore samples its last bin, and a surface is never under-sampled for being thin.
+    """
     tau = cfg.density_scale * sigma * (edges[:, 1:] - edges[:, :-1])
-    cdf = 1.0 - torch.exp(-torch.cumsum(tau, dim=-1))
-    cdf = torch.cat([cdf.new_zeros(cdf.shape[0], 1), cdf], dim=-1)
+    cdf = 1.0 - torch.exp(-torch.cumsum(tau[:, :-1], dim=-1))
+    cdf = torch.cat([cdf.new_zeros(cdf.shape[0], 1), cdf, cdf.new_ones(cdf.shape[0], 1)], dim=-1)
     if cfg.uniform_mix > 0:
         normalised = cdf / cdf[:, -1:].clamp(min=1e-12)
         uniform = (edges - cfg.near) / (cfg.far - cfg.near)
@@ -55,8 +61,9 @@ def importance_sample(edges: torch.Tensor, cdf: torch.Tensor, n_samples: int, *,
 
     edges: [R, M + 1] increasing bin edges (metres). cdf: [R, M + 1] non-decreasing values at the edges
     (``1 - transmittance`` in the renderer; it need not end at 1: the draws cover [cdf_0, cdf_last]).
-    A ray whose CDF is flat (no density) gets all samples at the midpoint of its last bin, as nerfacc does;
-    the renderer then gives it zero-width intervals and zero weight.
+    A ray whose CDF is flat (``cdf_0 == cdf_last``) gets all samples at the midpoint of its last bin, as nerfacc
+    does; the renderer then gives it zero-width intervals and zero weight. (``cdf_from_sigma`` always ends at 1, so
+    the renderer never produces a flat CDF.)
     """
     if edges.shape != cdf.shape or edges.dim() != 2:
         raise ValueError(f"edges {tuple(edges.shape)} and cdf {tuple(cdf.shape)} must both be [R, M + 1]")

@@ -11,8 +11,9 @@ Inputs (one call renders a batch of rays through a batch of volumes):
 Method (paper section 3.4 and the official code):
 1. coarse: ``n_coarse`` jittered uniform bins in [near, far]; σ looked up trilinearly (no gradient: the coarse
    pass only shapes the sampling, as in the official code where the proposal samples are detached);
-2. fine: ``n_fine`` distances drawn from the coarse distribution by inverting the CDF ``1 - T`` (nerfacc's
-   ``importance_sampling``, deterministic mid-bin draws unless ``fine_stratified``); the final render uses the
+2. fine: ``n_fine`` distances drawn from the coarse distribution by inverting the CDF ``1 - T`` at the coarse
+   edges, ending at 1 (the official ``1 - cat([T_exclusive, 0])``: the transmitted light is drawn in the last bin;
+   nerfacc's ``importance_sampling``, deterministic mid-bin draws unless ``fine_stratified``); the final render uses the
    fine samples only, as the official code does (not the union with the coarse samples);
 3. σ_i and logits s_i by trilinear lookup at the fine samples (zero outside the grid); with intervals
    [a_i, b_i] around the samples, δ_i = b_i - a_i, τ_i = density_scale · σ_i · δ_i,
