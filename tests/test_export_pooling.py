@@ -2,7 +2,9 @@
 
 The TorchScript exporter's known bug (index_add → ScatterND *without* reduction) keeps only one of the repeated
 updates per voxel; ``test_pooling_with_many_points_per_voxel`` fails on such a graph (checked below by removing the
-reduction attribute).
+reduction attribute). The dynamo exporter writes ``ScatterND(reduction="add")``, which onnxruntime runs on several
+threads without synchronisation (lost updates at random); the export rewrites it as ScatterElements
+(``deterministic_scatter_add``), whose sums are bit-identical to torch's ``index_add`` on every run.
 """
 import numpy as np
 import onnx
@@ -10,7 +12,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from export.onnx_export import trace_to_onnx
+from export.onnx_export import ExportError, deterministic_scatter_add, trace_to_onnx
 from occflownet.model.lift import LiftSplat, fine_grid
 from test_model_lift import _rig, assert_rotated
 
@@ -45,18 +47,23 @@ def exported(tmp_path_factory):
     module = PoolingStage(depths, stride=2).eval()
     path = tmp_path_factory.mktemp("pool") / "pool.onnx"
     names = ["depth_prob", "context", "feature_intrinsics", "cam2ego"]
-    proto = trace_to_onnx(module, _inputs(depths), path, names, ["trunk", "fine"], None)
-    return module, depths, proto
+    traced = trace_to_onnx(module, _inputs(depths), path, names, ["trunk", "fine"], None)
+    proto = onnx.ModelProto()
+    proto.CopyFrom(traced)
+    assert deterministic_scatter_add(proto) == 2                  # trunk and fine pooling
+    return module, depths, proto, traced
 
 
-def _run(proto, inputs):
-    session = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+def _run(proto, inputs, threads=0):
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    session = ort.InferenceSession(proto.SerializeToString(), so, providers=["CPUExecutionProvider"])
     names = [i.name for i in session.get_inputs()]
     return session.run(None, {n: t.numpy() for n, t in zip(names, inputs)})
 
 
 def test_pooling_with_many_points_per_voxel(exported):
-    module, depths, proto = exported
+    module, depths, proto, _ = exported
     inputs = _inputs(depths, seed=1)
     rows = module.lift(inputs[0], inputs[1], None, inputs[2], inputs[3])[0]
     occupied = (rows.abs().sum(-1) > 0).sum().item()
@@ -68,11 +75,33 @@ def test_pooling_with_many_points_per_voxel(exported):
     assert trunk_o.sum() == pytest.approx(float(trunk_t.sum()), rel=1e-5)
 
 
+def test_rewritten_pooling_is_bit_identical_to_torch_on_every_run(exported):
+    """ScatterElements adds in index order like torch's index_add: the same bits on every run, at 4 threads too."""
+    module, depths, proto, _ = exported
+    assert {n.op_type for n in proto.graph.node if n.op_type.startswith("Scatter")} == {"ScatterElements"}
+    inputs = _inputs(depths, seed=3)
+    with torch.no_grad():
+        trunk_t, fine_t = module(*inputs)
+    for _ in range(5):
+        trunk_o, fine_o = _run(proto, inputs, threads=4)
+        assert np.array_equal(trunk_o, trunk_t.numpy()) and np.array_equal(fine_o, fine_t.numpy())
+
+
+def test_rewrite_refuses_a_scatter_it_does_not_understand(exported):
+    _, _, _, traced = exported
+    odd = onnx.ModelProto()
+    odd.CopyFrom(traced)
+    node = next(n for n in odd.graph.node if n.op_type == "ScatterND")
+    node.input[1] = node.input[2]                                  # float [N, C] "indices": not [N, 1]
+    with pytest.raises(ExportError, match="2-D pooling form"):
+        deterministic_scatter_add(odd)
+
+
 def test_the_repeated_index_check_catches_a_scatter_without_reduction(exported):
     """Sanity check of the test above: the same graph with ScatterND's reduction removed loses updates."""
-    module, depths, proto = exported
+    module, depths, _, traced = exported
     broken = onnx.ModelProto()
-    broken.CopyFrom(proto)
+    broken.CopyFrom(traced)
     scatters = [n for n in broken.graph.node if n.op_type == "ScatterND"]
     assert scatters
     for node in scatters:
@@ -88,7 +117,7 @@ def test_the_repeated_index_check_catches_a_scatter_without_reduction(exported):
 
 
 def test_turning_the_rig_turns_the_exported_pooling(exported):
-    module, depths, proto = exported
+    module, depths, proto, _ = exported
     depth_prob, context, K, T = _inputs(depths, seed=2)
     turn = torch.eye(4)
     turn[:2, :2] = torch.tensor([[0.0, -1.0], [1.0, 0.0]])
