@@ -1,0 +1,595 @@
+// occflownet embedding runtime: contract-v1 model loading and checks, calibration parsing, one-frame inference,
+// and the extern "C" layer. See occflownet/runner.hpp for the shapes and frames at every boundary.
+#define ORT_API_MANUAL_INIT  // initialise the API ourselves: an onnxruntime older than the headers is an Error
+#include "occflownet/runner.h"
+#include "occflownet/runner.hpp"
+
+#include <onnxruntime_cxx_api.h>
+
+#include <nlohmann/json.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <fstream>
+#include <set>
+#include <sstream>
+
+namespace occflownet {
+namespace {
+
+using nlohmann::json;
+
+[[noreturn]] void fail(Error::Code code, const std::string& message) { throw Error(code, message); }
+
+// ------------------------------------------------------------------------------------------- JSON helpers
+// Number matrix rows x cols (row-major) from a JSON array of arrays; Error naming `where` otherwise.
+template <std::size_t N>
+std::array<double, N> matrix(const json& value, int rows, int cols, const std::string& where) {
+    std::array<double, N> out{};
+    auto shape_error = [&] {
+        fail(Error::kInvalidArgument, where + " must be a " + std::to_string(rows) + "x" + std::to_string(cols) +
+                                          " array of numbers");
+    };
+    if (!value.is_array() || int(value.size()) != rows) shape_error();
+    for (int r = 0; r < rows; ++r) {
+        const json& row = value[r];
+        if (!row.is_array() || int(row.size()) != cols) shape_error();
+        for (int c = 0; c < cols; ++c) {
+            if (!row[c].is_number()) shape_error();
+            out[r * cols + c] = row[c].get<double>();
+            if (!std::isfinite(out[r * cols + c])) fail(Error::kInvalidArgument, where + " contains NaN or inf");
+        }
+    }
+    return out;
+}
+
+std::array<int, 2> image_size(const json& value, const std::string& where) {
+    if (!value.is_array() || value.size() != 2 || !value[0].is_number() || !value[1].is_number())
+        fail(Error::kInvalidArgument, where + " must be [width, height]");
+    std::array<int, 2> out{};
+    for (int i = 0; i < 2; ++i) {
+        double v = value[i].get<double>();
+        if (!(v >= 1 && v == std::floor(v) && v < 1e9))
+            fail(Error::kInvalidArgument, where + " must be two positive integers, got " + value.dump());
+        out[i] = int(v);
+    }
+    return out;
+}
+
+// np.allclose(a, b, atol) semantics: |a - b| <= atol + 1e-5 |b|
+bool close(double a, double b, double atol) { return std::fabs(a - b) <= atol + 1e-5 * std::fabs(b); }
+
+double det3(const double* m, int stride) {  // determinant of a 3x3 block with row stride `stride`
+    const double *r0 = m, *r1 = m + stride, *r2 = m + 2 * stride;
+    return r0[0] * (r1[1] * r2[2] - r1[2] * r2[1]) - r0[1] * (r1[0] * r2[2] - r1[2] * r2[0]) +
+           r0[2] * (r1[0] * r2[1] - r1[1] * r2[0]);
+}
+
+std::string fmt(double v, int digits = 3) {
+    char buf[64];
+    std::snprintf(buf, sizeof buf, "%.*f", digits, v);
+    return buf;
+}
+
+Calibration calibration_from_json(const json& calib, const std::vector<std::string>& cameras,
+                                  const std::string& source) {
+    const std::string pre = source + ": ";
+    if (!calib.is_object()) fail(Error::kInvalidArgument, pre + "calibration must be a JSON object");
+    auto cams = calib.find("cameras");
+    if (cams == calib.end() || !cams->is_object())
+        fail(Error::kInvalidArgument, pre + "calibration has no 'cameras' object");
+    std::array<int, 2> top{};
+    if (calib.contains("image_size")) top = image_size(calib["image_size"], pre + "calibration image_size");
+    Calibration out;
+    for (const std::string& name : cameras) {
+        auto entry = cams->find(name);
+        if (entry == cams->end() || !entry->is_object()) {
+            std::string have;
+            for (auto it = cams->begin(); it != cams->end(); ++it) have += (have.empty() ? "" : ", ") + it.key();
+            fail(Error::kInvalidArgument, pre + "calibration lacks camera " + name + " (has " + have + ")");
+        }
+        for (const char* key : {"intrinsic", "cam2ego"})
+            if (!entry->contains(key))
+                fail(Error::kInvalidArgument, pre + "calibration of " + name + " lacks '" + key + "'");
+        auto K = matrix<9>((*entry)["intrinsic"], 3, 3, pre + name + " intrinsic");
+        double d = det3(K.data(), 3);
+        if (std::fabs(d) < 1e-9) fail(Error::kInvalidArgument, pre + name + " intrinsic is singular");
+        if (!(close(K[6], 0, 1e-6) && close(K[7], 0, 1e-6) && close(K[8], 1, 1e-6)))
+            fail(Error::kInvalidArgument, pre + name + " intrinsic last row must be [0, 0, 1]");
+        if (!(K[0] > 0 && K[4] > 0))
+            fail(Error::kInvalidArgument, pre + name + " intrinsic focal lengths must be positive, got fx=" +
+                                              fmt(K[0]) + ", fy=" + fmt(K[4]));
+        auto T = matrix<16>((*entry)["cam2ego"], 4, 4, pre + name + " cam2ego");
+        if (!(close(T[12], 0, 1e-6) && close(T[13], 0, 1e-6) && close(T[14], 0, 1e-6) && close(T[15], 1, 1e-6)))
+            fail(Error::kInvalidArgument, pre + name + " cam2ego last row must be [0, 0, 0, 1]");
+        double worst = 0;  // max |R^T R - I|
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) {
+                double dot = 0;
+                for (int k = 0; k < 3; ++k) dot += T[k * 4 + i] * T[k * 4 + j];
+                worst = std::max(worst, std::fabs(dot - (i == j ? 1.0 : 0.0)));
+            }
+        if (worst > kOrthonormalTolerance || det3(T.data(), 4) <= 0)
+            fail(Error::kInvalidArgument, pre + name + " cam2ego rotation is not a proper rotation (orthonormal, det +1)");
+        std::array<int, 2> size = top;
+        if (entry->contains("image_size")) size = image_size((*entry)["image_size"], pre + name + " image_size");
+        out.cameras.push_back(name);
+        out.intrinsics.push_back(K);
+        out.cam2ego.push_back(T);
+        out.image_size.push_back(size);
+    }
+    return out;
+}
+
+// ------------------------------------------------------------------------------------------- metadata
+const json& require(const json& meta, const char* key, const std::string& source) {
+    auto it = meta.find(key);
+    if (it == meta.end()) fail(Error::kContract, source + ": model metadata lacks '" + key + "'");
+    return *it;
+}
+
+std::vector<std::string> strings(const json& v, const char* key, const std::string& source) {
+    if (!v.is_array()) fail(Error::kContract, source + ": metadata '" + key + "' must be a list of strings");
+    std::vector<std::string> out;
+    for (const json& s : v) {
+        if (!s.is_string()) fail(Error::kContract, source + ": metadata '" + key + "' must be a list of strings");
+        out.push_back(s.get<std::string>());
+    }
+    return out;
+}
+
+ModelInfo parse_metadata(const std::vector<std::pair<std::string, std::string>>& props, const std::string& source) {
+    json meta = json::object();
+    for (const auto& [key, text] : props) {
+        json value = json::parse(text, nullptr, false);
+        meta[key] = value.is_discarded() ? json(text) : value;  // foreign keys may be plain strings
+    }
+    std::string missing;
+    for (const char* key : {"classes", "free_index", "grid", "cameras", "class_colors", "threshold", "input_size",
+                            "default_calibration", "onnx_contract"})
+        if (!meta.contains(key)) missing += (missing.empty() ? "" : ", ") + std::string(key);
+    if (!missing.empty())
+        fail(Error::kContract, source + ": model metadata lacks " + missing +
+                                   " (not an occflownet contract-v1 export?)");
+    ModelInfo info;
+    info.path = source;
+    const json& contract = require(meta, "onnx_contract", source);
+    if (!contract.is_string() || contract.get<std::string>() != "v1")
+        fail(Error::kContract, source + ": onnx_contract is " + contract.dump() + ", this library reads \"v1\"");
+    info.contract = "v1";
+    info.classes = strings(require(meta, "classes", source), "classes", source);
+    const json& free = require(meta, "free_index", source);
+    if (!free.is_number_integer() || free.get<long>() < 0 || free.get<long>() >= long(info.classes.size()))
+        fail(Error::kContract, source + ": free_index " + free.dump() + " is not a class index (0.." +
+                                   std::to_string(info.classes.size()) + ")");
+    info.free_index = free.get<int>();
+    const json& colors = require(meta, "class_colors", source);
+    if (!colors.is_array() || colors.size() != info.classes.size())
+        fail(Error::kContract, source + ": class_colors must have one RGB triple per class");
+    for (const json& c : colors) {
+        if (!c.is_array() || c.size() != 3) fail(Error::kContract, source + ": class_colors entries must be [r, g, b]");
+        std::array<std::uint8_t, 3> rgb{};
+        for (int i = 0; i < 3; ++i) {
+            if (!c[i].is_number_integer() || c[i].get<long>() < 0 || c[i].get<long>() > 255)
+                fail(Error::kContract, source + ": class_colors values must be integers 0..255");
+            rgb[i] = std::uint8_t(c[i].get<int>());
+        }
+        info.class_colors.push_back(rgb);
+    }
+    const json& grid = require(meta, "grid", source);
+    try {
+        for (int i = 0; i < 3; ++i) {
+            info.grid.lower[i] = grid.at("lower").at(i).get<double>();
+            info.grid.upper[i] = grid.at("upper").at(i).get<double>();
+            info.grid.shape[i] = grid.at("shape").at(i).get<int>();
+            if (info.grid.shape[i] < 1) throw std::runtime_error("shape entries must be positive");
+        }
+        if (grid.at("shape").size() != 3) throw std::runtime_error("shape must have 3 entries");
+        info.grid.voxel_size = grid.at("voxel_size").get<double>();
+    } catch (const std::exception& e) {
+        fail(Error::kContract, source + ": metadata 'grid' must hold lower, upper, voxel_size and shape [X, Y, Z] (" +
+                                   e.what() + ")");
+    }
+    info.cameras = strings(require(meta, "cameras", source), "cameras", source);
+    if (info.cameras.size() != kCameras ||
+        std::set<std::string>(info.cameras.begin(), info.cameras.end()).size() != kCameras)
+        fail(Error::kContract, source + ": metadata 'cameras' must be 6 distinct names");
+    const json& tau = require(meta, "threshold", source);
+    if (!tau.is_number()) fail(Error::kContract, source + ": metadata 'threshold' must be a number");
+    info.threshold = tau.get<double>();
+    const json& input_size = require(meta, "input_size", source);
+    if (!input_size.is_array() || input_size.size() != 2 || !input_size[0].is_number_integer() ||
+        !input_size[1].is_number_integer())
+        fail(Error::kContract, source + ": metadata 'input_size' must be [H, W]");
+    info.input_size = {input_size[0].get<int>(), input_size[1].get<int>()};
+    const json& calib = require(meta, "default_calibration", source);
+    if (!calib.is_object() || !calib.contains("image_size"))
+        fail(Error::kContract, source + ": default_calibration must be calibration JSON with image_size [w, h]");
+    try {
+        info.default_calibration = calibration_from_json(calib, info.cameras, source + ": default_calibration");
+    } catch (const Error& e) {
+        fail(Error::kContract, e.what());
+    }
+    if (meta.contains("preset") && meta["preset"].is_string()) info.preset = meta["preset"].get<std::string>();
+    if (meta.contains("occflownet_version") && meta["occflownet_version"].is_string())
+        info.version = meta["occflownet_version"].get<std::string>();
+    return info;
+}
+
+// ------------------------------------------------------------------------------------------- session I/O
+const char* kInputs[3] = {"images", "intrinsics", "cam2ego"};
+const char* kOutputs[2] = {"occupancy", "density"};
+
+std::string type_name(ONNXTensorElementDataType t) {
+    switch (t) {
+        case ONNX_TENSOR_ELEMENT_DATA_TYPE_UINT8: return "uint8";
+        case ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT: return "float32";
+        case ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT16: return "float16";
+        case ONNX_TENSOR_ELEMENT_DATA_TYPE_INT64: return "int64";
+        case ONNX_TENSOR_ELEMENT_DATA_TYPE_INT32: return "int32";
+        case ONNX_TENSOR_ELEMENT_DATA_TYPE_DOUBLE: return "float64";
+        default: return "type " + std::to_string(int(t));
+    }
+}
+
+std::string dims_text(const std::vector<std::int64_t>& dims) {
+    std::string s = "[";
+    for (std::size_t i = 0; i < dims.size(); ++i) s += (i ? ", " : "") + (dims[i] < 0 ? "?" : std::to_string(dims[i]));
+    return s + "]";
+}
+
+// Checks one side (inputs or outputs) against `want` = name -> (dtype, dims; -1 = any). Returns the dims found.
+std::vector<std::vector<std::int64_t>> check_signature(
+    Ort::Session& session, bool inputs, const std::vector<std::string>& names,
+    const std::vector<std::pair<ONNXTensorElementDataType, std::vector<std::int64_t>>>& want,
+    const std::string& source) {
+    Ort::AllocatorWithDefaultOptions alloc;
+    std::size_t n = inputs ? session.GetInputCount() : session.GetOutputCount();
+    std::vector<std::string> found;
+    for (std::size_t i = 0; i < n; ++i)
+        found.push_back(inputs ? session.GetInputNameAllocated(i, alloc).get()
+                               : session.GetOutputNameAllocated(i, alloc).get());
+    const std::string kind = inputs ? "input" : "output";
+    std::vector<std::vector<std::int64_t>> dims_out;
+    for (std::size_t w = 0; w < names.size(); ++w) {
+        auto it = std::find(found.begin(), found.end(), names[w]);
+        if (it == found.end()) {
+            std::string have;
+            for (auto& f : found) have += (have.empty() ? "" : ", ") + f;
+            fail(Error::kContract, source + ": model has no " + kind + " '" + names[w] + "' (has " + have +
+                                       "); contract v1 needs inputs images, intrinsics, cam2ego and outputs "
+                                       "occupancy, density");
+        }
+        std::size_t idx = std::size_t(it - found.begin());
+        Ort::TypeInfo type = inputs ? session.GetInputTypeInfo(idx) : session.GetOutputTypeInfo(idx);
+        if (type.GetONNXType() != ONNX_TYPE_TENSOR)
+            fail(Error::kContract, source + ": " + kind + " '" + names[w] + "' is not a tensor");
+        auto tensor = type.GetTensorTypeAndShapeInfo();
+        auto dims = tensor.GetShape();
+        const auto& [dtype, wdims] = want[w];
+        bool ok = tensor.GetElementType() == dtype && dims.size() == wdims.size();
+        for (std::size_t d = 0; ok && d < dims.size(); ++d)
+            if (wdims[d] >= 0 && dims[d] >= 0 && dims[d] != wdims[d]) ok = false;
+        if (!ok)
+            fail(Error::kContract, source + ": " + kind + " '" + names[w] + "' is " +
+                                       type_name(tensor.GetElementType()) + " " + dims_text(dims) +
+                                       ", contract v1 needs " + type_name(dtype) + " " + dims_text(wdims));
+        dims_out.push_back(dims);
+    }
+    return dims_out;
+}
+
+std::string provider_list() {
+    std::string s;
+    for (auto& p : Ort::GetAvailableProviders()) s += (s.empty() ? "" : ", ") + p;
+    return s;
+}
+
+const OrtApi* init_api() {
+    static const OrtApi* api = [] {
+        const OrtApi* a = OrtGetApiBase()->GetApi(ORT_API_VERSION);
+        if (a) Ort::InitApi(a);
+        return a;
+    }();
+    if (!api)
+        fail(Error::kRuntime, std::string("onnxruntime library ") + OrtGetApiBase()->GetVersionString() +
+                                  " is older than the headers this program was built with (API version " +
+                                  std::to_string(ORT_API_VERSION) + ")");
+    return api;
+}
+
+}  // namespace
+
+// ------------------------------------------------------------------------------------------- Calibration
+Calibration parse_calibration(const std::string& json_text, const std::vector<std::string>& cameras,
+                              const std::string& source) {
+    json calib = json::parse(json_text, nullptr, false);
+    if (calib.is_discarded()) fail(Error::kInvalidArgument, source + ": not valid JSON");
+    return calibration_from_json(calib, cameras, source);
+}
+
+void Calibration::cam2ego_f32(float* out) const {
+    for (std::size_t c = 0; c < cam2ego.size(); ++c)
+        for (int i = 0; i < 16; ++i) out[c * 16 + i] = float(cam2ego[c][i]);
+}
+
+void Calibration::intrinsics_for_size(int width, int height, float* out) const {
+    if (width < 1 || height < 1) fail(Error::kInvalidArgument, "image size must be positive");
+    for (std::size_t c = 0; c < intrinsics.size(); ++c) {
+        std::array<double, 9> K = intrinsics[c];
+        auto [cw, ch] = image_size[c];
+        if (cw > 0 && (cw != width || ch != height)) {
+            double aspect = double(width) / height, calib_aspect = double(cw) / ch;
+            if (std::fabs(aspect / calib_aspect - 1.0) > kAspectTolerance)
+                fail(Error::kInvalidArgument,
+                     cameras[c] + ": image is " + std::to_string(width) + "x" + std::to_string(height) +
+                         " but the calibration is for " + std::to_string(cw) + "x" + std::to_string(ch) +
+                         " (aspect ratio " + fmt(aspect) + " vs " + fmt(calib_aspect) +
+                         "); give a calibration with intrinsics for " + std::to_string(width) + "x" +
+                         std::to_string(height) + " images");
+            double sx = double(width) / cw, sy = double(height) / ch;
+            for (int j = 0; j < 3; ++j) K[j] *= sx, K[3 + j] *= sy;
+            K[2] += 0.5 * sx - 0.5;  // pixel centres: c' = (c + 0.5) s - 0.5
+            K[5] += 0.5 * sy - 0.5;
+        }
+        for (int i = 0; i < 9; ++i) out[c * 9 + i] = float(K[i]);
+    }
+}
+
+// ------------------------------------------------------------------------------------------- Runner
+struct Runner::Impl {
+    Ort::Env env{nullptr};
+    Ort::Session session{nullptr};
+    Ort::MemoryInfo memory{nullptr};
+    ModelInfo info;
+    // Tensors over the caller's buffers of the previous call (reused when the same buffers come again).
+    struct Bound {
+        const void* ptr[5] = {};
+        int height = 0, width = 0;
+        std::vector<Ort::Value> inputs, outputs;
+    } bound;
+};
+
+Runner::Runner(const std::string& model_path, const RunnerOptions& options) : impl_(std::make_unique<Impl>()) {
+    {
+        std::ifstream probe(model_path, std::ios::binary);
+        if (!probe) fail(Error::kIO, "model file not found or unreadable: " + model_path);
+    }
+    init_api();
+    try {
+        impl_->env = Ort::Env(ORT_LOGGING_LEVEL_ERROR, "occflownet");
+        Ort::SessionOptions so;
+        so.SetIntraOpNumThreads(std::max(0, options.intra_op_threads));
+        so.SetInterOpNumThreads(1);
+        so.SetExecutionMode(ExecutionMode::ORT_SEQUENTIAL);
+        so.SetGraphOptimizationLevel(GraphOptimizationLevel::ORT_ENABLE_ALL);
+        so.AddConfigEntry("session.intra_op.allow_spinning", options.allow_spinning ? "1" : "0");
+        std::string ep = options.execution_provider;
+        std::transform(ep.begin(), ep.end(), ep.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });
+        try {
+            if (ep == "cuda") {
+                const OrtApi& api = Ort::GetApi();
+                OrtCUDAProviderOptionsV2* cuda = nullptr;
+                Ort::ThrowOnError(api.CreateCUDAProviderOptions(&cuda));
+                std::unique_ptr<OrtCUDAProviderOptionsV2, void (*)(OrtCUDAProviderOptionsV2*)> guard(
+                    cuda, api.ReleaseCUDAProviderOptions);
+                std::vector<std::string> keys{"device_id"}, values{std::to_string(options.device_id)};
+                for (auto& [k, v] : options.provider_options) keys.push_back(k), values.push_back(v);
+                std::vector<const char*> kp, vp;
+                for (std::size_t i = 0; i < keys.size(); ++i) kp.push_back(keys[i].c_str()), vp.push_back(values[i].c_str());
+                Ort::ThrowOnError(api.UpdateCUDAProviderOptions(cuda, kp.data(), vp.data(), kp.size()));
+                so.AppendExecutionProvider_CUDA_V2(*cuda);
+            } else if (!ep.empty() && ep != "cpu") {
+                std::unordered_map<std::string, std::string> opts(options.provider_options.begin(),
+                                                                  options.provider_options.end());
+                so.AppendExecutionProvider(options.execution_provider, opts);
+            }
+        } catch (const Ort::Exception& e) {
+            fail(Error::kRuntime, "execution provider '" + options.execution_provider +
+                                      "' is not usable with this onnxruntime (" + e.what() +
+                                      "; available: " + provider_list() + ")");
+        }
+        try {
+            impl_->session = Ort::Session(impl_->env, model_path.c_str(), so);
+        } catch (const Ort::Exception& e) {
+            fail(Error::kContract, model_path + ": onnxruntime cannot load this model (" + e.what() + ")");
+        }
+        auto in_dims = check_signature(impl_->session, true, {"images", "intrinsics", "cam2ego"},
+                                       {{ONNX_TENSOR_ELEMENT_DATA_TYPE_UINT8, {-1, kCameras, -1, -1, 3}},
+                                        {ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT, {-1, kCameras, 3, 3}},
+                                        {ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT, {-1, kCameras, 4, 4}}},
+                                       model_path);
+        Ort::AllocatorWithDefaultOptions alloc;
+        Ort::ModelMetadata meta = impl_->session.GetModelMetadata();
+        std::vector<std::pair<std::string, std::string>> props;
+        for (auto& key : meta.GetCustomMetadataMapKeysAllocated(alloc))
+            props.emplace_back(key.get(), meta.LookupCustomMetadataMapAllocated(key.get(), alloc).get());
+        impl_->info = parse_metadata(props, model_path);
+        const auto& g = impl_->info.grid.shape;
+        check_signature(impl_->session, false, {"occupancy", "density"},
+                        {{ONNX_TENSOR_ELEMENT_DATA_TYPE_UINT8, {-1, g[0], g[1], g[2]}},
+                         {ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT, {-1, g[0], g[1], g[2]}}},
+                        model_path);
+        const auto& img = in_dims[0];
+        if (img[2] > 0 && img[3] > 0) impl_->info.fixed_image_size = {int(img[2]), int(img[3])};
+        impl_->memory = Ort::MemoryInfo::CreateCpu(OrtArenaAllocator, OrtMemTypeDefault);
+    } catch (const Ort::Exception& e) {
+        fail(Error::kRuntime, model_path + ": onnxruntime: " + e.what());
+    }
+}
+
+Runner::~Runner() = default;
+Runner::Runner(Runner&&) noexcept = default;
+Runner& Runner::operator=(Runner&&) noexcept = default;
+
+const ModelInfo& Runner::info() const { return impl_->info; }
+
+std::string Runner::onnxruntime_version() { return OrtGetApiBase()->GetVersionString(); }
+
+void Runner::run(const std::uint8_t* images, int height, int width, const float* intrinsics, const float* cam2ego,
+                 std::uint8_t* occupancy, float* density) {
+    if (!impl_) fail(Error::kInvalidArgument, "run() on a moved-from Runner");
+    if (!images || !intrinsics || !cam2ego || !occupancy)
+        fail(Error::kInvalidArgument, "run(): images, intrinsics, cam2ego and occupancy must not be null");
+    if (height < 1 || width < 1)
+        fail(Error::kInvalidArgument, "run(): image size " + std::to_string(width) + "x" + std::to_string(height) +
+                                          " is not positive");
+    const auto& fixed = impl_->info.fixed_image_size;
+    if (fixed[0] > 0 && (fixed[0] != height || fixed[1] != width))
+        fail(Error::kInvalidArgument, "run(): this model takes " + std::to_string(fixed[1]) + "x" +
+                                          std::to_string(fixed[0]) + " images only, got " + std::to_string(width) +
+                                          "x" + std::to_string(height));
+    Impl::Bound& b = impl_->bound;
+    const void* ptrs[5] = {images, intrinsics, cam2ego, occupancy, density};
+    bool same = b.height == height && b.width == width && std::equal(ptrs, ptrs + 5, b.ptr);
+    try {
+        if (!same) {
+            b.inputs.clear();
+            b.outputs.clear();
+            const auto& g = impl_->info.grid.shape;
+            const std::int64_t img_shape[5] = {1, kCameras, height, width, 3}, k_shape[4] = {1, kCameras, 3, 3},
+                               t_shape[4] = {1, kCameras, 4, 4}, g_shape[4] = {1, g[0], g[1], g[2]};
+            const std::size_t n_img = std::size_t(kCameras) * height * width * 3, n_vox = impl_->info.grid.voxels();
+            const OrtMemoryInfo* mem = impl_->memory;
+            b.inputs.push_back(Ort::Value::CreateTensor<std::uint8_t>(mem, const_cast<std::uint8_t*>(images), n_img,
+                                                                      img_shape, 5));
+            b.inputs.push_back(Ort::Value::CreateTensor<float>(mem, const_cast<float*>(intrinsics), kCameras * 9,
+                                                               k_shape, 4));
+            b.inputs.push_back(Ort::Value::CreateTensor<float>(mem, const_cast<float*>(cam2ego), kCameras * 16,
+                                                               t_shape, 4));
+            b.outputs.push_back(Ort::Value::CreateTensor<std::uint8_t>(mem, occupancy, n_vox, g_shape, 4));
+            if (density) b.outputs.push_back(Ort::Value::CreateTensor<float>(mem, density, n_vox, g_shape, 4));
+            std::copy(ptrs, ptrs + 5, b.ptr);
+            b.height = height, b.width = width;
+        }
+        impl_->session.Run(Ort::RunOptions{nullptr}, kInputs, b.inputs.data(), 3, kOutputs, b.outputs.data(),
+                           b.outputs.size());
+    } catch (const Ort::Exception& e) {
+        b = Impl::Bound{};  // do not reuse tensors of a failed call
+        fail(Error::kRuntime, impl_->info.path + ": inference failed: " + e.what());
+    }
+}
+
+}  // namespace occflownet
+
+// ------------------------------------------------------------------------------------------- extern "C"
+struct occflownet_runner {
+    occflownet::Runner runner;
+};
+
+namespace {
+
+void set_error(char* err, std::size_t size, const char* message) {
+    if (err && size) {
+        std::strncpy(err, message, size - 1);
+        err[size - 1] = '\0';
+    }
+}
+
+template <typename F>
+int guarded(char* err, std::size_t size, F&& body) {
+    try {
+        body();
+        set_error(err, size, "");
+        return OCCFLOWNET_OK;
+    } catch (const occflownet::Error& e) {
+        set_error(err, size, e.what());
+        return int(e.code());
+    } catch (const std::exception& e) {
+        set_error(err, size, e.what());
+        return OCCFLOWNET_RUNTIME;
+    } catch (...) {
+        set_error(err, size, "unknown error");
+        return OCCFLOWNET_RUNTIME;
+    }
+}
+
+}  // namespace
+
+extern "C" {
+
+int occflownet_runner_create(const char* model_path, const occflownet_options* options, occflownet_runner** out,
+                             char* err, size_t err_size) {
+    return guarded(err, err_size, [&] {
+        if (!model_path || !out) throw occflownet::Error(occflownet::Error::kInvalidArgument, "null argument");
+        *out = nullptr;
+        occflownet::RunnerOptions opts;
+        if (options) {
+            opts.intra_op_threads = options->intra_op_threads;
+            opts.allow_spinning = options->allow_spinning != 0;
+            if (options->execution_provider) opts.execution_provider = options->execution_provider;
+            opts.device_id = options->device_id;
+        }
+        *out = new occflownet_runner{occflownet::Runner(model_path, opts)};
+    });
+}
+
+void occflownet_runner_destroy(occflownet_runner* runner) { delete runner; }
+
+const char* occflownet_runner_camera(const occflownet_runner* runner, int i) {
+    if (!runner || i < 0 || i >= occflownet::kCameras) return nullptr;
+    return runner->runner.info().cameras[std::size_t(i)].c_str();
+}
+
+size_t occflownet_runner_grid_shape(const occflownet_runner* runner, int shape[3]) {
+    if (!runner) return 0;
+    const auto& g = runner->runner.info().grid;
+    if (shape) std::copy(g.shape.begin(), g.shape.end(), shape);
+    return g.voxels();
+}
+
+int occflownet_runner_free_index(const occflownet_runner* runner) {
+    return runner ? runner->runner.info().free_index : -1;
+}
+
+int occflownet_runner_num_classes(const occflownet_runner* runner) {
+    return runner ? int(runner->runner.info().classes.size()) : 0;
+}
+
+const char* occflownet_runner_class_name(const occflownet_runner* runner, int i) {
+    if (!runner || i < 0 || i >= occflownet_runner_num_classes(runner)) return nullptr;
+    return runner->runner.info().classes[std::size_t(i)].c_str();
+}
+
+int occflownet_runner_default_image_size(const occflownet_runner* runner, int* width, int* height) {
+    if (!runner || !width || !height) return OCCFLOWNET_INVALID_ARGUMENT;
+    const auto& size = runner->runner.info().default_calibration.image_size[0];
+    *width = size[0];
+    *height = size[1];
+    return OCCFLOWNET_OK;
+}
+
+int occflownet_runner_default_calibration(const occflownet_runner* runner, int width, int height, float* intrinsics,
+                                          float* cam2ego, char* err, size_t err_size) {
+    return guarded(err, err_size, [&] {
+        if (!runner || !intrinsics || !cam2ego)
+            throw occflownet::Error(occflownet::Error::kInvalidArgument, "null argument");
+        const auto& calib = runner->runner.info().default_calibration;
+        calib.intrinsics_for_size(width, height, intrinsics);
+        calib.cam2ego_f32(cam2ego);
+    });
+}
+
+int occflownet_calibration_from_json(const occflownet_runner* runner, const char* json_text, int width, int height,
+                                     float* intrinsics, float* cam2ego, char* err, size_t err_size) {
+    return guarded(err, err_size, [&] {
+        if (!runner || !json_text || !intrinsics || !cam2ego)
+            throw occflownet::Error(occflownet::Error::kInvalidArgument, "null argument");
+        auto calib = occflownet::parse_calibration(json_text, runner->runner.info().cameras);
+        calib.intrinsics_for_size(width, height, intrinsics);
+        calib.cam2ego_f32(cam2ego);
+    });
+}
+
+int occflownet_runner_run(occflownet_runner* runner, const uint8_t* images, int height, int width,
+                          const float* intrinsics, const float* cam2ego, uint8_t* occupancy, float* density,
+                          char* err, size_t err_size) {
+    return guarded(err, err_size, [&] {
+        if (!runner) throw occflownet::Error(occflownet::Error::kInvalidArgument, "null runner");
+        runner->runner.run(images, height, width, intrinsics, cam2ego, occupancy, density);
+    });
+}
+
+}  // extern "C"

@@ -1,0 +1,36 @@
+// File I/O of the occflownet-run program: camera image folders, JPEG/PNG decoding (libjpeg-turbo, libpng) straight
+// into the [6, H, W, 3] input slab, calibration files, and .npy output. Errors are occflownet::Error.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace occflownet::io {
+
+std::vector<std::uint8_t> read_file(const std::string& path);   // Error(kIO) naming the file
+std::string read_text(const std::string& path);
+
+// <folder>/<camera>.jpg (or .jpeg, .png; first found) per camera, in `cameras` order; Error listing what is missing.
+std::vector<std::string> find_camera_images(const std::string& folder, const std::vector<std::string>& cameras);
+
+// An encoded image in memory: its size from the header, without decoding.
+struct EncodedImage {
+    std::string name;                 // for messages (the path)
+    std::vector<std::uint8_t> bytes;
+    bool png = false;
+    int width = 0, height = 0;
+};
+EncodedImage probe_image(const std::string& path);   // reads the file; Error if not a readable JPEG/PNG header
+
+// Decodes `image` into dst, uint8 [height, width, 3] RGB (image.height x image.width). JPEG: libjpeg-turbo with its
+// defaults (islow DCT, fancy upsampling), as OpenCV's decoder; any libjpeg warning (corrupt or truncated data) is an
+// Error. PNG: 8-bit grey/RGB/palette, alpha dropped; 16-bit PNGs are refused. EXIF orientation is ignored.
+void decode_into(const EncodedImage& image, std::uint8_t* dst);
+
+// Writes a NumPy .npy (format 1.0, C order) of `dtype` ("|u1" or "<f4") and `shape`.
+void write_npy(const std::string& path, const std::string& dtype, const std::vector<std::size_t>& shape,
+               const void* data, std::size_t nbytes);
+
+}  // namespace occflownet::io
