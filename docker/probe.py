@@ -3,8 +3,8 @@
     python docker/probe.py --url http://127.0.0.1:PORT --frame DIR --reference grid.npz --model m.onnx \
         --started-at EPOCH_SECONDS
 
-Checks: /healthz answers ok; /readyz becomes ready (prints the seconds since --started-at, i.e. since
-`docker run` returned, and the server's own warm-up time); /v1/metadata names the model file; then one
+Checks: /healthz answers ok and /readyz becomes ready, each polled every 50 ms (prints the seconds since
+--started-at, i.e. since `docker run` returned, and the server's own warm-up time); /v1/metadata names the model file; then one
 POST /v1/occupancy of the frame per response format, each grid equal, voxel for voxel, to the reference computed by
 local onnxruntime (`occflownet predict --model`). The PNG is decoded and compared pixel for pixel with the picture
 serve/encode.py draws from the reference grid with the model's class colours. Exit status 1 on the first failure.
@@ -35,21 +35,20 @@ def check(condition: bool, message: str) -> None:
         raise ProbeError(message)
 
 
-def wait_ready(client: httpx.Client, started_at: float, timeout: float) -> dict:
+def wait_for(client: httpx.Client, path: str, started_at: float, timeout: float) -> tuple[dict, float]:
+    """Poll ``path`` every 50 ms until it answers 200; (its JSON body, seconds since ``started_at``)."""
     deadline = time.monotonic() + timeout
     last = "no answer"
     while time.monotonic() < deadline:
         try:
-            r = client.get("/readyz", timeout=2)
+            r = client.get(path, timeout=2)
             if r.status_code == 200:
-                body = r.json()
-                body["ready_after_s"] = time.time() - started_at
-                return body
+                return r.json(), time.time() - started_at
             last = f"{r.status_code} {r.text[:200]}"
         except httpx.TransportError as exc:
             last = f"{type(exc).__name__}: {exc}"
         time.sleep(0.05)
-    raise ProbeError(f"/readyz not ready after {timeout:.0f} s (last: {last})")
+    raise ProbeError(f"{path} did not answer 200 within {timeout:.0f} s (last: {last})")
 
 
 def expected_png(reference: np.ndarray, model: Path) -> np.ndarray:
@@ -110,11 +109,12 @@ def main() -> int:
         print("probe: warning: the reference grid is all free, so the comparison below is weak", file=sys.stderr)
 
     with httpx.Client(base_url=args.url) as client:
-        r = client.get("/healthz", timeout=10)
-        check(r.status_code == 200 and r.json().get("status") == "ok", f"/healthz: {r.status_code} {r.text[:200]}")
-        print("probe: /healthz ok")
-        ready = wait_ready(client, args.started_at, args.ready_timeout)
-        print(f"probe: /readyz ready {ready['ready_after_s']:.2f} s after `docker run` returned "
+        health, after = wait_for(client, "/healthz", args.started_at, args.ready_timeout)
+        check(health.get("status") == "ok", f"/healthz: {health}")
+        print(f"probe: /healthz ok {after:.2f} s after `docker run` returned")
+        ready, after = wait_for(client, "/readyz", args.started_at, args.ready_timeout)
+        check(ready.get("status") == "ready", f"/readyz: {ready}")
+        print(f"probe: /readyz ready {after:.2f} s after `docker run` returned "
               f"(server warm-up {ready.get('warmup_seconds')} s)")
         meta = client.get("/v1/metadata", timeout=10)
         check(meta.status_code == 200, f"/v1/metadata: {meta.status_code}")
