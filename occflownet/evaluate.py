@@ -36,6 +36,7 @@ from occflownet.data.index import SampleIndex, load_index
 from occflownet.data.loaders import load_occupancy, load_sample_images
 from occflownet.data.tables import DatasetError
 from occflownet.eval import OccupancyMetric, RayIoUMetric, scene_ray_origins
+from occflownet.eval.fog import FogMetric, crossed_voxels
 
 Predictor = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple]
 
@@ -174,14 +175,27 @@ def _save(out_dir: Path, token: str, occupancy: np.ndarray, density: np.ndarray)
     np.savez_compressed(out_dir / f"{token}.npz", occupancy=occupancy, density=density)
 
 
+def _fog_rays(samples: EvalSamples, fog_horizon: int | None):
+    """The RayBuilder whose camera rays define the fog metric's 'crossed' voxels (training rays, t ∈ [-O, O]), or
+    None when fog is off or the split has no lidarseg labels to build rays from."""
+    from occflownet.data.rays import RayBuilder, RayConfig
+
+    if fog_horizon is None or any(samples.index[int(p)].lidarseg_path is None for p in samples.positions):
+        return None
+    return RayBuilder(samples.index, samples.dataroot, RayConfig(horizon=fog_horizon), cache_size=2 * fog_horizon + 2)
+
+
 def evaluate(samples: EvalSamples, predict: Predictor, *, batch_size: int = 1, save_predictions=None,
-             rayiou: bool = True, progress: bool = True) -> dict:
+             rayiou: bool = True, progress: bool = True, fog_horizon: int | None = 3) -> dict:
     """Run ``predict`` over ``samples`` (batches of ``batch_size``) and return the JSON-ready result::
 
         {"dataroot", "version", "split", "samples", "batch_size",
          "occupancy": OccupancyMetric.compute() (camera_mask and all_voxels: miou, miou_static, miou_dynamic,
                       geometry_iou, iou_per_class, voxels, confusion),
          "rayiou": RayIoUMetric.compute() (rayiou, rayiou@1, rayiou@2, rayiou@4, iou_per_class, ...) or None,
+         "fog": FogMetric.compute() (predicted vs labelled occupied voxels in mask_camera, split by whether a
+                training ray of t ∈ [-fog_horizon, fog_horizon] crosses them) or None (fog_horizon None, or
+                the split has no lidarseg to build rays from),
          "timing": {"seconds", "load_seconds", "predict_seconds", "metric_seconds", "samples_per_second"}}
 
     Ray origins per sample: the LiDAR origins of its scene's keyframes moved into its current ego frame
@@ -197,6 +211,8 @@ def evaluate(samples: EvalSamples, predict: Predictor, *, batch_size: int = 1, s
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
     occ_metric, ray_metric = OccupancyMetric(), (RayIoUMetric() if rayiou else None)
+    fog_rays = _fog_rays(samples, fog_horizon)
+    fog_metric = FogMetric() if fog_rays is not None else None
     lidar2ego, ego2global = samples.index.arrays["lidar_sensor2ego"], samples.index.arrays["lidar_ego2global"]
     batches = [samples.positions[i:i + batch_size] for i in range(0, len(samples), batch_size)]
     t_start, t_load, t_predict, t_metric = time.perf_counter(), 0.0, 0.0, 0.0
@@ -225,6 +241,10 @@ def evaluate(samples: EvalSamples, predict: Predictor, *, batch_size: int = 1, s
                             origins = scene_ray_origins(lidar2ego[start:stop], ego2global[start:stop],
                                                         position - start)
                             ray_metric.update(occupancy[i], gt.semantics, origins)
+                        if fog_metric is not None:
+                            rays = fog_rays.rays(position)
+                            fog_metric.update(occupancy[i], gt.semantics, gt.mask_camera,
+                                              crossed_voxels(rays.origins, rays.directions, rays.depths))
                     except ValueError as exc:
                         raise ValueError(f"sample {token}: {exc}") from exc
                     t_metric += time.perf_counter() - t0
@@ -241,6 +261,7 @@ def evaluate(samples: EvalSamples, predict: Predictor, *, batch_size: int = 1, s
         "samples": len(samples), "batch_size": batch_size,
         "occupancy": occ_metric.compute(),
         "rayiou": ray_metric.compute() if ray_metric is not None else None,
+        "fog": fog_metric.compute() if fog_metric is not None else None,
         "timing": {"seconds": round(seconds, 3), "load_seconds": round(t_load, 3),
                    "predict_seconds": round(t_predict, 3), "metric_seconds": round(t_metric, 3),
                    "samples_per_second": round(len(samples) / seconds, 3) if seconds > 0 else None},

@@ -14,7 +14,8 @@ Weights and definitions follow the paper and the official OccFlowNet code (desig
 
 Weighted terms (the names the training log uses): ``ray_losses`` → "render_depth", "render_semantics";
 ``voxel_losses`` → "voxel_density", "voxel_semantics"; ``lidar_depth_loss`` × ``lidar_depth_weight`` →
-"lidar_depth".
+"lidar_depth"; ``free_space_loss`` × ``free_space_weight`` → "free_space" (beyond the paper: LiDAR beams without a
+return render through empty space).
 ``total_loss`` combines the terms for the mode ``"2d"``, ``"3d"`` or ``"2d+3d"`` and adds their sum as "total".
 ``render_losses`` and ``lidar_depth_loss`` are the unweighted primitives.
 """
@@ -41,12 +42,13 @@ class LossConfig:
     lidar_depth_weight: float = 0.05    # BCE on the LSS depth distribution (0 disables it)
     voxel_density_weight: float = 1.0   # 3D: BCE on σ
     voxel_semantic_weight: float = 1.0  # 3D: CE on the logits of occupied voxels
+    free_space_weight: float = 1.0      # free-space beams: BCE of their rendered opacity towards 0 (when given)
 
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"LossConfig.mode must be one of {MODES}, got {self.mode!r}")
         for name in ("depth_weight", "semantic_weight", "lidar_depth_weight", "voxel_density_weight",
-                     "voxel_semantic_weight"):
+                     "voxel_semantic_weight", "free_space_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"LossConfig.{name} must be >= 0, got {getattr(self, name)}")
 
@@ -96,6 +98,17 @@ def ray_losses(rendered, depth_gt: torch.Tensor, labels_gt: torch.Tensor, class_
     if depth:
         terms = {"render_depth": cfg.depth_weight * r["depth"], **terms}
     return terms
+
+
+def free_space_loss(opacity: torch.Tensor) -> torch.Tensor:
+    """Unweighted free-space term: mean over beams of -log(1 - opacity), opacity [F] = the rendered weight sum
+    Σ w_i of LiDAR beams that returned nothing (``occflownet.data.free_space``): 0 when the grid lets them pass,
+    growing without bound as a beam is stopped (clamped at opacity 1 - 1e-4). F = 0 gives 0 (graph kept)."""
+    if opacity.dim() != 1:
+        raise ValueError(f"opacity must be [F], got {tuple(opacity.shape)}")
+    if opacity.shape[0] == 0:
+        return opacity.sum()
+    return -torch.log1p(-opacity.clamp(0.0, 1.0 - 1e-4)).mean()
 
 
 def lidar_depth_targets(feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor,
@@ -203,13 +216,15 @@ def voxel_losses(density: torch.Tensor, logits: torch.Tensor, semantics_gt: torc
 
 def total_loss(cfg: LossConfig, *, rendered=None, depth_gt=None, labels_gt=None, class_weights=None,
                depth_prob=None, feature_intrinsics=None, cam2ego=None, points_ego=None, depth_bin_centers=None,
-               density=None, logits=None, semantics_gt=None, voxel_mask=None) -> dict[str, torch.Tensor]:
+               density=None, logits=None, semantics_gt=None, voxel_mask=None,
+               free_opacity=None) -> dict[str, torch.Tensor]:
     """Weighted loss terms of the configured mode plus their sum under "total".
 
     2D terms (modes "2d", "2d+3d"): ``rendered`` (a ``RenderOutput``), ``depth_gt`` [R], ``labels_gt`` [R],
     ``class_weights`` [17] or None → "render_depth", "render_semantics". 3D terms (modes "3d", "2d+3d"):
     ``density``, ``logits``, ``semantics_gt``, ``voxel_mask`` → "voxel_density", "voxel_semantics". LiDAR depth
-    (any mode, when ``lidar_depth_weight`` > 0 and ``depth_prob`` is given): "lidar_depth". Every term is already
+    (any mode, when ``lidar_depth_weight`` > 0 and ``depth_prob`` is given): "lidar_depth". Free-space beams (any
+    mode, when ``free_opacity`` [F] is given): "free_space". Every term is already
     multiplied by its weight. A missing input the mode needs raises ValueError naming it.
     """
     terms: dict[str, torch.Tensor] = {}
@@ -232,6 +247,8 @@ def total_loss(cfg: LossConfig, *, rendered=None, depth_gt=None, labels_gt=None,
             raise ValueError(f"lidar depth loss needs {', '.join(missing)} with depth_prob")
         terms["lidar_depth"] = cfg.lidar_depth_weight * lidar_depth_loss(
             depth_prob, feature_intrinsics, cam2ego, points_ego, depth_bin_centers)
+    if free_opacity is not None and cfg.free_space_weight > 0:
+        terms["free_space"] = cfg.free_space_weight * free_space_loss(free_opacity)
     if not terms:
         raise ValueError("total_loss produced no term: check LossConfig.mode and the inputs")
     terms["total"] = sum(terms.values())

@@ -58,6 +58,10 @@ def test_ground_truth_as_prediction_scores_one(prepared_synth_root):
     assert ray["samples"] == 3 and ray["rays_with_gt_hit"] > 0
     for key in ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4"):
         assert ray[key] == pytest.approx(1.0)
+    fog = result["fog"]  # the labels as prediction: exactly as many occupied voxels as labelled, everywhere
+    for part in ("camera_mask", "crossed", "never_crossed"):
+        assert fog[part]["false_positive"] == 0 and fog[part]["predicted"] == fog[part]["labelled"]
+    assert fog["camera_mask"]["fog_factor"] == pytest.approx(1.0) and 0.2 < fog["crossed_fraction"] < 0.9
 
 
 def test_camera_mask_is_applied(prepared_synth_root):

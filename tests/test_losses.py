@@ -126,3 +126,20 @@ def test_total_loss_modes():
     with pytest.raises(ValueError, match="mode"):
         LossConfig(mode="4d")
     assert np.isfinite(both["total"].item())
+
+
+def test_free_space_loss_is_zero_for_transparent_beams_and_grows_with_opacity():
+    from occflownet.losses import LossConfig, free_space_loss, total_loss
+
+    assert float(free_space_loss(torch.zeros(5))) == 0.0
+    half = float(free_space_loss(torch.full((4,), 0.5)))
+    assert abs(half - np.log(2.0)) < 1e-6
+    assert float(free_space_loss(torch.ones(3))) == pytest.approx(-np.log(1e-4), rel=1e-3)  # clamped, finite
+    assert float(free_space_loss(torch.zeros(0))) == 0.0
+    opacity = torch.full((4,), 0.5, requires_grad=True)
+    terms = total_loss(LossConfig(mode="3d", free_space_weight=2.0, lidar_depth_weight=0.0),
+                       density=torch.zeros(1, 200, 200, 16), logits=torch.zeros(1, 200, 200, 16, 17),
+                       semantics_gt=torch.full((1, 200, 200, 16), 17, dtype=torch.uint8), free_opacity=opacity)
+    assert float(terms["free_space"]) == pytest.approx(2 * np.log(2.0), rel=1e-6)
+    terms["total"].backward()
+    assert torch.all(opacity.grad > 0)

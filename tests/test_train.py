@@ -139,3 +139,16 @@ def test_3d_supervision_without_gts_fails_before_training(prepared_synth_root, t
     err = capsys.readouterr().err
     assert "Occ3D labels" in err and "gts" in err
     assert not (tmp_path / "run3d" / "checkpoints" / "last.pt").exists()
+
+
+def test_free_space_beams_and_unmasked_voxel_losses_train(prepared_synth_root, tmp_path):
+    # 2d+3d with free-space beams: the log has the free-space term; the 3D losses run over every voxel unless
+    # --voxel-mask is given (official use_mask=False)
+    root, _ = prepared_synth_root
+    out = tmp_path / "free"
+    assert main(_train_argv(root, out, "--max-steps", "2", "--horizon", "1", "--supervision", "2d+3d",
+                            "--free-space", "--free-rays-per-step", "256", "--head-init", "official")) == 0
+    log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert {"free_space", "voxel_density", "render_depth"} <= set(log[0]) and log[0]["free_space"] > 0
+    config = json.loads((out / "train_config.json").read_text())
+    assert config["free_space"] and not config["voxel_mask"] and config["head_init"] == "official"

@@ -28,6 +28,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="rendered-depth MSE and LiDAR depth BCE (off: semantics only)")
     p.add_argument("--density-scale", type=float, default=1.0,
                    help="rendering optical depth per metre = scale * sigma (1.0 = the official, unscaled sigma)")
+    p.add_argument("--voxel-mask", action=argparse.BooleanOptionalAction, default=False,
+                   help="3D voxel losses only inside mask_camera (default off: every voxel, as the official code)")
+    p.add_argument("--head-init", default="", choices=["", "prior", "official"],
+                   help="σ/semantic head init: prior (σ ≈ 0.1 at the start) or official (Xavier, zero bias); "
+                        "default: the preset's")
+    p.add_argument("--free-space", action=argparse.BooleanOptionalAction, default=False,
+                   help="also render LiDAR beams that returned nothing; their opacity goes to 0 (beyond the paper)")
+    p.add_argument("--free-rays-per-step", type=int, default=2048, help="free-space beams per sample per step")
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--time-limit", type=float, default=0.0, help="stop with a checkpoint after this many seconds")
     p.add_argument("--batch-size", type=int, default=1, help="samples per process per step")
@@ -62,7 +70,9 @@ def config_from_args(args):
         preset=args.preset, dataroot=str(args.dataroot), out=str(args.out), version=version, split=args.split,
         supervision=args.supervision, horizon=args.horizon, flow=args.flow, flow_mover=args.flow_mover,
         dynamic_filter=args.dynamic_filter, disocclusion=args.disocclusion, loss_weighting=args.loss_weighting,
-        depth_loss=args.depth_loss, density_scale=args.density_scale, max_steps=args.max_steps, time_limit_s=args.time_limit,
+        depth_loss=args.depth_loss, density_scale=args.density_scale, voxel_mask=args.voxel_mask,
+        head_init=args.head_init, free_space=args.free_space, free_rays_per_step=args.free_rays_per_step,
+        max_steps=args.max_steps, time_limit_s=args.time_limit,
         batch_size=args.batch_size, rays_per_step=pick("rays_per_step"), lr=pick("lr"),
         weight_decay=args.weight_decay, warmup_steps=pick("warmup_steps"), ema_decay=pick("ema_decay"),
         checkpoint_every=pick("checkpoint_every"), log_every=args.log_every, seed=args.seed,

@@ -29,6 +29,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from occflownet.config import DYNAMIC_FILTER_CLASSES, GRID, map_lidarseg
+from occflownet.data.free_space import FreeSpaceConfig, missing_beams
 from occflownet.data.loaders import load_lidar, load_lidarseg
 from occflownet.data.tables import DatasetError
 from occflownet.geometry import invert, transform_points
@@ -44,6 +45,7 @@ class RayConfig:
     dynamic_filter: bool = True             # drop rays labelled in DYNAMIC_FILTER_CLASSES in frames t ≠ 0
     min_depth: float = 0.05                 # minimum camera z-depth of a hit, metres
     ignored_raw_labels: tuple[int, ...] = (EGO_VEHICLE_RAW_LABEL,)  # lidarseg raw classes that make no ray
+    free_space: FreeSpaceConfig | None = None  # also recover free-space beams (data/free_space.py); None: off
 
     def __post_init__(self):
         if self.horizon < 0:
@@ -137,6 +139,23 @@ class FrameHits:
     cameras: np.ndarray       # int8 [H]
     pixels: np.ndarray        # float32 [H, 2] pixel centres
     point_index: np.ndarray   # int64 [H] index of the point in its sweep
+    lidar_origin: np.ndarray  # [3] LiDAR centre, global
+    free_directions: np.ndarray  # [F, 3] unit free-space beam directions, global (empty unless configured)
+
+
+@dataclass(frozen=True)
+class FreeRays:
+    """F free-space beams (LiDAR firings without a return), all in the current ego frame of one keyframe."""
+
+    origins: np.ndarray       # float32 [F, 3]  LiDAR centre of the frame the beam was fired in
+    directions: np.ndarray    # float32 [F, 3]  unit
+    time_offsets: np.ndarray  # int8    [F]     keyframe offset t of that frame
+
+    def __len__(self) -> int:
+        return len(self.time_offsets)
+
+    def take(self, index) -> "FreeRays":
+        return FreeRays(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
 
 
 def frame_hits(sample, dataroot, config: RayConfig = RayConfig()) -> FrameHits:
@@ -160,11 +179,15 @@ def frame_hits(sample, dataroot, config: RayConfig = RayConfig()) -> FrameHits:
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     hit_points = points[hits.point_index]
     centers = cam2global[:, :3, 3]
+    free = np.zeros((0, 3))
+    if config.free_space is not None:  # every return counts as "not free", the ego vehicle's own included
+        free = missing_beams(sweep, float(sample.lidar.sensor2ego[2, 3]), config.free_space) @ lidar2global[:3, :3].T
     return FrameHits(
         points=hit_points, centers=centers, directions=dirs,
         depths=np.linalg.norm(hit_points - centers[hits.camera], axis=1),
         labels=map_lidarseg(raw[kept][hits.point_index]), cameras=hits.camera.astype(np.int8),
         pixels=centers_px.astype(np.float32), point_index=kept[hits.point_index],
+        lidar_origin=lidar2global[:3, 3], free_directions=free,
     )
 
 
@@ -209,6 +232,19 @@ class RayBuilder:
                 time_offsets=np.full(len(cams), t, dtype=np.int8), cameras=cams, pixels=f.pixels[keep],
             ))
         return RayBatch.concatenate(parts)
+
+    def free_rays(self, position: int) -> FreeRays:
+        """The free-space beams of keyframe ``position`` and its neighbours t ∈ [-O, O], current ego frame
+        (empty unless ``RayConfig.free_space`` is set)."""
+        to_current = invert(self.index.arrays["lidar_ego2global"][position])
+        origins, directions, offsets = [], [], []
+        for t, j in self.index.neighbours(position, self.config.horizon):
+            f = self.frame(j)
+            origins.append(np.repeat(transform_points(to_current, f.lidar_origin[None]), len(f.free_directions), 0))
+            directions.append(f.free_directions @ to_current[:3, :3].T)
+            offsets.append(np.full(len(f.free_directions), t, dtype=np.int8))
+        return FreeRays(np.concatenate(origins).astype(np.float32), np.concatenate(directions).astype(np.float32),
+                        np.concatenate(offsets))
 
     def visible_point_labels(self, position: int) -> np.ndarray:
         """uint8 [P]: Occ3D labels of the distinct LiDAR points of keyframe ``position`` inside the grid that

@@ -56,6 +56,10 @@ def _pct(value) -> str:
     return f"{100.0 * float(value):.2f}"
 
 
+def _ratio(value) -> str:
+    return "-" if value is None else f"{float(value):.2f}"
+
+
 def format_table(result: dict) -> str:
     """A per-class table of one or several results (see the module doc), values in percent.
 
@@ -103,6 +107,13 @@ def format_table(result: dict) -> str:
                           + "".join(f"  {col[2].get(key, ''):>{w}}" for col, w in zip(columns, widths))).rstrip())
     lines.append(rule)
     lines.extend(footer)
+    fog = result.get("fog") if isinstance(result, dict) else None
+    if fog:
+        cam, crossed, never = fog["camera_mask"], fog["crossed"], fog["never_crossed"]
+        lines.append(f"fog (camera mask): {_pct(cam['predicted_fraction'])} % of voxels predicted occupied vs "
+                     f"{_pct(cam['labelled_fraction'])} % labelled (x{_ratio(cam['fog_factor'])}); crossed by "
+                     f"training rays ({_pct(fog['crossed_fraction'])} %): x{_ratio(crossed['fog_factor'])}, "
+                     f"never crossed: x{_ratio(never['fog_factor'])}, {never['false_positive']} false positives")
     lines.append("values in %; * dynamic class (paper Table 2); '-' class absent from prediction and ground "
                  "truth, skipped by the means")
     return "\n".join(lines)

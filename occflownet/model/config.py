@@ -19,6 +19,8 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from occflownet.config import GRID
 from occflownet.rig import default_rig
 
+HEAD_INITS = ("prior", "official")  # σ/semantic head initialisations (decoder.VoxelDecoder)
+
 # The synthetic world's default camera image size (width, height); the default calibration is for this size.
 DEFAULT_IMAGE_SIZE = (480, 270)
 FEATURE_STRIDE = 16  # the neck's output stride: feature map = input_size / 16
@@ -58,11 +60,15 @@ class ModelConfig:
     head_channels: int = 8                         # per-voxel feature width after upsampling (stride > 1)
     sigma_hidden: tuple[int, ...] = (16,)          # hidden layers of the density MLP Φσ
     semantic_hidden: tuple[int, ...] = (16,)       # hidden layers of the semantic MLP Φs
+    head_init: str = "prior"                       # "prior": torch default, Φσ bias -2.2 (σ ≈ 0.1);
+                                                   # "official": Xavier-uniform weights, zero biases (σ ≈ 0.5)
     # --- fusion ---
     threshold: float = 0.35                        # τ: occupied where σ >= τ (0.35 2D-trained, 0.30 3D-trained)
     default_calibration: dict = field(default_factory=_default_calibration)
 
     def __post_init__(self):
+        if self.head_init not in HEAD_INITS:
+            raise ValueError(f"head_init must be one of {HEAD_INITS}, got {self.head_init!r}")
         for name in ("input_size", "image_mean", "image_std", "backbone_layers", "sigma_hidden",
                      "semantic_hidden"):
             setattr(self, name, tuple(getattr(self, name)))

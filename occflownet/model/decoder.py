@@ -62,7 +62,8 @@ class VoxelDecoder(nn.Module):
     """Residual 3D trunk at stride ``stride`` + depth-to-space upsampling + per-voxel heads Φσ, Φs."""
 
     def __init__(self, in_channels: int, stride: int, channels: int, blocks: int,
-                 head_channels: int, sigma_hidden: tuple[int, ...], semantic_hidden: tuple[int, ...]):
+                 head_channels: int, sigma_hidden: tuple[int, ...], semantic_hidden: tuple[int, ...],
+                 head_init: str = "prior"):
         super().__init__()
         self.stride = stride
         self.stem = nn.Sequential(nn.Conv3d(in_channels, channels, kernel_size=1, bias=False),
@@ -76,8 +77,13 @@ class VoxelDecoder(nn.Module):
             head_in = channels
         self.head_channels = head_in
         self.sigma_head = mlp(head_in, sigma_hidden, 1)
-        nn.init.constant_(self.sigma_head[-1].bias, SIGMA_PRIOR_LOGIT)
         self.semantic_head = mlp(head_in, semantic_hidden, NUM_CLASSES)
+        if head_init == "official":  # the official decoder: Xavier-uniform weights and zero biases in both heads
+            for layer in [m for m in (*self.sigma_head, *self.semantic_head) if isinstance(m, nn.Linear)]:
+                nn.init.xavier_uniform_(layer.weight)
+                nn.init.zeros_(layer.bias)
+        else:  # "prior": torch's default init, Φσ's output bias SIGMA_PRIOR_LOGIT
+            nn.init.constant_(self.sigma_head[-1].bias, SIGMA_PRIOR_LOGIT)
 
     def voxel_features(self, trunk: torch.Tensor, fine_points: tuple[torch.Tensor, torch.Tensor] | None):
         """Head input features [B·Xc·Yc·Zc·s³, head_channels], rows in block layout order."""

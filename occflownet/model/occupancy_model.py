@@ -40,7 +40,8 @@ class OccupancyModel(nn.Module):
         self.depth_head = DepthContextHead(cfg.neck_channels, cfg.num_depth_bins, cfg.context_channels, fine)
         self.lift = LiftSplat(cfg.depth_bin_centers(), cfg.decoder_stride)
         self.decoder = VoxelDecoder(cfg.context_channels, cfg.decoder_stride, cfg.decoder_channels,
-                                    cfg.decoder_blocks, cfg.head_channels, cfg.sigma_hidden, cfg.semantic_hidden)
+                                    cfg.decoder_blocks, cfg.head_channels, cfg.sigma_hidden, cfg.semantic_hidden,
+                                    cfg.head_init)
 
     # ---------------------------------------------------------------- shared trunk
     def _check_inputs(self, images, intrinsics, cam2ego):

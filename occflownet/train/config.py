@@ -29,6 +29,10 @@ class TrainConfig:
     loss_weighting: bool = True
     depth_loss: bool = True          # rendered depth MSE and the LSS LiDAR depth BCE
     density_scale: float = 1.0       # rendering uses τ_i = density_scale · σ_i · δ_i; 1.0 = official (σ per metre)
+    voxel_mask: bool = False         # 3D voxel losses only inside mask_camera (official: False, every voxel)
+    head_init: str = ""              # "" = the preset's; "prior" or "official" (model/config.py HEAD_INITS)
+    free_space: bool = False         # also render LiDAR beams without a return; their opacity → 0 (beyond the paper)
+    free_rays_per_step: int = 2048   # free-space beams per sample per step (with free_space)
     max_steps: int = 1000
     time_limit_s: float = 0.0        # 0 = no limit; otherwise stop (with a checkpoint) after this many seconds
     batch_size: int = 1              # samples per process per step
@@ -54,6 +58,10 @@ class TrainConfig:
             raise ValueError("horizon must be >= 0")
         if self.flow_mover not in ("idw", "nearest"):
             raise ValueError("flow_mover must be 'idw' or 'nearest'")
+        if self.free_space and not self.uses_2d:
+            raise ValueError("free_space renders LiDAR beams: it needs supervision '2d' or '2d+3d'")
+        if self.free_rays_per_step < 1:
+            raise ValueError("free_rays_per_step must be >= 1")
 
     @property
     def uses_2d(self) -> bool:

@@ -18,6 +18,7 @@ from torch.utils.data import Dataset
 from occflownet.data.flow import flow_moves
 from occflownet.data.index import SampleIndex
 from occflownet.data.loaders import load_occupancy, load_sample_images
+from occflownet.data.free_space import FreeSpaceConfig
 from occflownet.data.rays import RayBuilder, RayConfig, sample_rays
 from occflownet.geometry import invert, transform_points
 from occflownet.config import GRID
@@ -48,7 +49,8 @@ class TrainingSamples(Dataset):
         self.cfg = cfg
         self.flow_records = flow_records or {}
         # With occupancy flow, dynamic rays of temporal frames are kept and rendered through the warped volume.
-        ray_cfg = RayConfig(horizon=cfg.horizon, dynamic_filter=cfg.dynamic_filter and not cfg.flow)
+        ray_cfg = RayConfig(horizon=cfg.horizon, dynamic_filter=cfg.dynamic_filter and not cfg.flow,
+                            free_space=FreeSpaceConfig() if cfg.free_space else None)
         self.rays = RayBuilder(index, dataroot, ray_cfg, cache_size=2 * cfg.horizon + 2)
 
     def __len__(self) -> int:
@@ -67,18 +69,18 @@ class TrainingSamples(Dataset):
         }
         if self.cfg.uses_2d:
             rays = sample_rays(self.rays.rays(position), self.cfg.rays_per_step, rng)
-            frames = volume_frames(rays.time_offsets, self.cfg.flow)
-            t = rays.time_offsets.astype(np.int64)
-            if self.cfg.flow:
-                lookup = {f: n for n, f in enumerate(frames)}
-                volume = np.array([lookup[int(x)] for x in t], dtype=np.int64)
-            else:
-                volume = (t != 0).astype(np.int64)
+            free = self._free_rays(position, rng)
+            offsets = rays.time_offsets if free is None else np.concatenate([rays.time_offsets, free.time_offsets])
+            frames = volume_frames(offsets, self.cfg.flow)
             item.update({
                 "ray_origins": torch.from_numpy(rays.origins), "ray_directions": torch.from_numpy(rays.directions),
                 "ray_depths": torch.from_numpy(rays.depths), "ray_labels": torch.from_numpy(rays.labels.astype(np.int64)),
-                "ray_volume": torch.from_numpy(volume), "num_volumes": len(frames),
+                "ray_volume": torch.from_numpy(self._volume_of(rays.time_offsets, frames)), "num_volumes": len(frames),
             })
+            if free is not None:
+                item.update({"free_origins": torch.from_numpy(free.origins),
+                             "free_directions": torch.from_numpy(free.directions),
+                             "free_volume": torch.from_numpy(self._volume_of(free.time_offsets, frames))})
             if self.cfg.flow:
                 record = self.flow_records.get(sample.token)
                 if record is None:
@@ -92,6 +94,24 @@ class TrainingSamples(Dataset):
             item["occ_semantics"] = torch.from_numpy(occ.semantics)                       # uint8 [200, 200, 16]
             item["occ_mask"] = torch.from_numpy(occ.mask_camera.astype(bool))
         return item
+
+    def _volume_of(self, time_offsets: np.ndarray, frames: list[int]) -> np.ndarray:
+        """int64 [R]: the volume (index into ``frames``' copies) that rays of frames ``time_offsets`` render."""
+        t = time_offsets.astype(np.int64)
+        if self.cfg.flow:
+            lookup = {f: n for n, f in enumerate(frames)}
+            return np.array([lookup[int(x)] for x in t], dtype=np.int64)
+        return (t != 0).astype(np.int64)
+
+    def _free_rays(self, position: int, rng: np.random.Generator):
+        """``free_rays_per_step`` free-space beams of the keyframe and its neighbours, or None (off / none found)."""
+        if not self.cfg.free_space:
+            return None
+        free = self.rays.free_rays(position)
+        if len(free) == 0:
+            return None
+        return free.take(rng.choice(len(free), size=self.cfg.free_rays_per_step,
+                                    replace=len(free) < self.cfg.free_rays_per_step))
 
     def _depth_points(self, position: int, rng: np.random.Generator) -> np.ndarray:
         """float32 [N, 3]: the keyframe's LiDAR points (t = 0) in the current ego frame, for the LSS depth loss."""
@@ -117,6 +137,11 @@ def collate(items: list[dict]) -> dict:
         for key in ("ray_origins", "ray_directions", "ray_depths", "ray_labels"):
             out[key] = torch.cat([it[key] for it in items])
         out["ray_volume"] = torch.cat([it["ray_volume"] + int(o) for it, o in zip(items, offsets)])
+        if any("free_origins" in it for it in items):
+            with_free = [(it, o) for it, o in zip(items, offsets) if "free_origins" in it]
+            out["free_origins"] = torch.cat([it["free_origins"] for it, _ in with_free])
+            out["free_directions"] = torch.cat([it["free_directions"] for it, _ in with_free])
+            out["free_volume"] = torch.cat([it["free_volume"] + int(o) for it, o in with_free])
         out["volume_source"] = torch.cat([torch.full((it["num_volumes"],), b, dtype=torch.long)
                                           for b, it in enumerate(items)])
         out["volume_is_temporal"] = torch.cat([torch.arange(it["num_volumes"]) > 0 for it in items])

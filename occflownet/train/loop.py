@@ -68,7 +68,8 @@ def _model_config(cfg: TrainConfig, index, positions):
     calib = {"cameras": {c.name: {"intrinsic": c.intrinsic.tolist(), "cam2ego": c.sensor2ego.tolist()}
                          for c in sample.cameras},
              "image_size": [int(sample.cameras[0].width), int(sample.cameras[0].height)]}
-    return replace(model_cfg, threshold=cfg.resolved_threshold(), default_calibration=calib)
+    head_init = cfg.head_init or model_cfg.head_init
+    return replace(model_cfg, threshold=cfg.resolved_threshold(), default_calibration=calib, head_init=head_init)
 
 
 def _load_flow(cfg: TrainConfig):

@@ -58,13 +58,18 @@ class LossComputer:
                                      batch_index=batch["ray_volume"].to(device)),
                 depth_gt=batch["ray_depths"].to(device), labels_gt=batch["ray_labels"].to(device),
                 class_weights=None if self.class_weights is None else self.class_weights.to(device))
+            if "free_origins" in batch:  # free-space beams through the same per-frame volumes
+                free = render_rays(dens, logi, batch["free_origins"].to(device), batch["free_directions"].to(device),
+                                   self.render_cfg, generator=generator, batch_index=batch["free_volume"].to(device))
+                inputs["free_opacity"] = free.weight_sum
         if cfg.depth_loss:
             inputs.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"],
                           cam2ego=batch["cam2ego"].to(device), points_ego=[p.to(device) for p in batch["depth_points"]],
                           depth_bin_centers=self.depth_bins.to(device))
         if cfg.uses_3d:
+            # every voxel by default, as the official 3D training (use_mask=False); mask_camera only when asked
             inputs.update(density=density, logits=logits, semantics_gt=batch["occ_semantics"].to(device),
-                          voxel_mask=batch["occ_mask"].to(device))
+                          voxel_mask=batch["occ_mask"].to(device) if cfg.voxel_mask else None)
         terms = L.total_loss(self.loss_cfg, **inputs)
         terms["loss"] = terms.pop("total")
         return terms
