@@ -1,4 +1,5 @@
-"""The synthetic ablation study (issue 6): the paper's component ladder on the synthetic world, one budget per row.
+"""The synthetic ablation study: the paper's component ladder on the synthetic world, one budget per row (rows 8, 9
+add free-space beams, beyond the paper).
 
 Usage (the data first, once):
     occflownet synth --out W/train --scenes 8 --frames 40 --seed 0 && occflownet prepare --dataroot W/train
@@ -32,6 +33,9 @@ ROWS = {
     5: ("2d base: + filter, disocclusion, LW", ["--supervision", "2d", "--horizon", "3", "--no-flow"]),
     6: ("2d + flow", ["--supervision", "2d", "--horizon", "3", "--flow"]),
     7: ("2d+3d + flow", ["--supervision", "2d+3d", "--horizon", "3", "--flow"]),
+    # beyond the paper: LiDAR beams without a return as free-space supervision (data/free_space.py)
+    8: ("2d base + free space", ["--supervision", "2d", "--horizon", "3", "--no-flow", "--free-space"]),
+    9: ("2d + flow + free space", ["--supervision", "2d", "--horizon", "3", "--flow", "--free-space"]),
 }
 
 
@@ -106,6 +110,10 @@ def density_stats(predictions: Path, tau: float = 0.35) -> dict:
             "frac_occupied": float(occupied)}
 
 
+def _ratio(x):
+    return "n/a" if x is None else f"{x:.2f}"
+
+
 def _pct(x):
     return "n/a" if x is None else f"{100 * x:.2f}"
 
@@ -128,7 +136,19 @@ def table(results_path: Path) -> str:
         per_class = occ["iou_per_class"]
         lines.append(f"| {r['row']} | {_pct(occ['geometry_iou'])} | "
                      + " | ".join(_pct(per_class.get(name)) for name in shown) + " |")
-    lines += ["", "| # | σ median | σ p99 | σ p99.9 | σ max | voxels σ ≥ 0.35 | predicted occupied |",
+    lines += ["", "Fog inside mask_camera (eval's `fog`: predicted occupied / labelled occupied voxels; crossed = some "
+              "training ray of t ∈ [-3, 3] passes through the voxel):", "",
+              "| # | labelled occupied | predicted occupied | fog factor | crossed: factor | never crossed: factor | "
+              "never crossed: false positives |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        fog = r["metrics"].get("fog")
+        if fog:
+            cam, crossed, never = fog["camera_mask"], fog["crossed"], fog["never_crossed"]
+            lines.append(f"| {r['row']} | {_pct(cam['labelled_fraction'])} % | {_pct(cam['predicted_fraction'])} % | "
+                         f"{_ratio(cam['fog_factor'])} | {_ratio(crossed['fog_factor'])} | "
+                         f"{_ratio(never['fog_factor'])} | {never['false_positive']} |")
+    lines += ["", "σ over all voxels of the grid (inside and outside the camera mask):", "",
+              "| # | σ median | σ p99 | σ p99.9 | σ max | voxels σ ≥ 0.35 | predicted occupied |",
               "|---|---|---|---|---|---|---|"]
     for r in rows:
         d = r.get("density")

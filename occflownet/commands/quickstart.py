@@ -61,17 +61,34 @@ def run(args) -> int:
             return rc
     minutes = (time.monotonic() - t0) / 60
     example = _write_example(world, out / "example")
+    picture = _write_picture(world, out / "predictions", out / "side_by_side.png")
     print(f"""
 quickstart finished in {minutes:.1f} min.
   synthetic world   {world}   (previews: {world / 'preview'})
   training run      {run_dir}   (log.jsonl, checkpoints/last.pt)
   evaluation        {out / 'eval.json'}
+  picture           {picture}   (ground truth beside the prediction, first val keyframe)
   ONNX model        {onnx}
 
 next:
   occflownet predict --model {onnx} --images {example} --calib {example / 'calib.json'} --out grid.npz --png bev.png
   occflownet serve --model {onnx} --port 8000""")
     return 0
+
+
+def _write_picture(world, predictions, path):
+    """The side-by-side picture (eval/picture.py) of the first val keyframe's saved prediction."""
+    import numpy as np
+
+    from occflownet.data.index import load_index
+    from occflownet.eval.picture import sample_side_by_side
+    from occflownet.inference_io import save_png
+
+    index = load_index(world)
+    position = int(index.split_positions("val")[0])
+    with np.load(predictions / f"{index[position].token}.npz") as z:
+        occupancy = z["occupancy"]
+    return save_png(path, sample_side_by_side(world, position, occupancy))
 
 
 def _write_example(world, folder):
