@@ -156,6 +156,21 @@ def deterministic_scatter_add(proto: onnx.ModelProto) -> int:
     return rewritten
 
 
+def portable_resize(proto: onnx.ModelProto) -> None:
+    """Drop ``antialias=0`` (the default) from Resize nodes, so that no ``antialias`` attribute is left for a runtime
+    to misread; an ``antialias=1`` Resize is an ExportError (OpenVINO ignores it silently, TensorRT's parser and
+    others have their own gaps; the model's preprocessing writes the antialiasing filter out instead)."""
+    for node in proto.graph.node:
+        if node.op_type != "Resize":
+            continue
+        kept = [a for a in node.attribute if not (a.name == "antialias" and a.i == 0)]
+        if any(a.name == "antialias" for a in kept):
+            raise ExportError(f"Resize {node.name!r} has antialias=1, which runtimes compute differently; contract v1 "
+                              "graphs write antialiasing as explicit filters")
+        del node.attribute[:]
+        node.attribute.extend(kept)
+
+
 def finalize_proto(proto: onnx.ModelProto, metadata: dict | None) -> onnx.ModelProto:
     """Drop exporter annotations, make scatter-adds deterministic, write metadata, cap the IR version; validate
     (checker + standard domain)."""
@@ -166,6 +181,7 @@ def finalize_proto(proto: onnx.ModelProto, metadata: dict | None) -> onnx.ModelP
         del vi.metadata_props[:]
     proto.doc_string = ""
     deterministic_scatter_add(proto)
+    portable_resize(proto)
     del proto.metadata_props[:]
     for key, value in (metadata or {}).items():
         entry = proto.metadata_props.add()

@@ -68,3 +68,69 @@ def test_wrong_inputs_are_rejected():
         m(torch.zeros(1, 5, 64, 64, 3, dtype=torch.uint8), K, T)
     with pytest.raises(ValueError, match="cam2ego"):
         m(torch.zeros(1, 6, 64, 64, 3, dtype=torch.uint8), K, T[:, :, :3])
+
+
+def _triangle_matrix(n_in: int, n_out: int) -> np.ndarray:
+    """float64 [n_out, n_in]: the antialiased bilinear (PIL triangle) resampling matrix, written independently."""
+    r = n_in / n_out
+    a = max(r, 1.0)
+    centre = (np.arange(n_out) + 0.5)[:, None] * r
+    m = np.maximum(0.0, 1.0 - np.abs(np.arange(n_in)[None, :] + 0.5 - centre) / a)
+    return m / m.sum(axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("h,w,out", [(445, 800, (160, 288)), (267, 480, (160, 288)), (889, 1600, (160, 288)),
+                                     (100, 100, (160, 288)), (50, 300, (7, 299)), (17, 3, (5, 1))])
+def test_antialiased_resize_is_the_triangle_filter(h, w, out):
+    """Known answer: a float64 triangle-filter matrix on each axis (reductions of 1.7x-5.6x, enlargement, mixed)."""
+    from occflownet.model.preprocess import antialiased_resize
+
+    x = torch.randint(0, 256, (2, h, w, 3), generator=torch.Generator().manual_seed(h + w)).float()
+    got = antialiased_resize(x, out).double().numpy()                             # [N, C, H_out, W_out]
+    want = np.einsum("ih,nhwc,jw->ncij", _triangle_matrix(h, out[0]), x.double().numpy(),
+                     _triangle_matrix(w, out[1]), optimize=True)
+    assert got.shape == (2, 3, *out)
+    assert np.abs(got - want).max() < 5e-3                                           # float32 sums of 0..255
+
+
+def test_antialiased_resize_matches_torch_antialias():
+    """The checkpoints trained with F.interpolate(antialias=True) see the same input (float32 rounding apart)."""
+    import torch.nn.functional as F
+
+    from occflownet.model.preprocess import antialiased_resize
+
+    x = torch.randint(0, 256, (6, 445, 800, 3), generator=torch.Generator().manual_seed(0)).float()
+    old = F.interpolate(x.permute(0, 3, 1, 2), size=INPUT, mode="bilinear", align_corners=False, antialias=True)
+    assert (antialiased_resize(x, INPUT) - old).abs().max() < 1e-3
+
+
+def test_preprocessing_exports_without_resize():
+    """The exported preprocessing is plain Gather/MatMul/elementwise: no Resize (whose antialias attribute OpenVINO
+    ignores), and onnxruntime agrees with torch."""
+    import onnx
+    import onnxruntime as ort
+
+    from export.onnx_export import trace_to_onnx
+
+    class Pre(torch.nn.Module):
+        def forward(self, images, intrinsics):
+            return preprocess_images(images, intrinsics, INPUT, IMAGENET_MEAN, IMAGENET_STD)
+
+    K, _ = calibration_arrays(default_rig(800, 450))
+    images = torch.randint(0, 256, (1, 6, 450, 800, 3), dtype=torch.uint8, generator=torch.Generator().manual_seed(1))
+    K = torch.from_numpy(K)[None]
+    h, w = torch.export.Dim("h", min=32, max=4096), torch.export.Dim("w", min=32, max=4096)
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        proto = trace_to_onnx(Pre(), (images, K), Path(tmp) / "pre.onnx", ["images", "intrinsics"], ["x", "k"],
+                              {"images": {2: h, 3: w}, "intrinsics": None})
+    assert "Resize" not in {n.op_type for n in proto.graph.node}
+    session = ort.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"])
+    for size in ((450, 800), (900, 1600), (270, 480)):
+        imgs = torch.randint(0, 256, (1, 6, *size, 3), dtype=torch.uint8, generator=torch.Generator().manual_seed(2))
+        Ks = torch.from_numpy(calibration_arrays(default_rig(size[1], size[0]))[0])[None]
+        x_t, k_t = preprocess_images(imgs, Ks, INPUT, IMAGENET_MEAN, IMAGENET_STD)
+        x_o, k_o = session.run(None, {"images": imgs.numpy(), "intrinsics": Ks.numpy()})
+        assert np.abs(x_o - x_t.numpy()).max() < 1e-5 and np.allclose(k_o, k_t.numpy(), rtol=1e-6)
