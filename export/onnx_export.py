@@ -18,7 +18,6 @@ Pipeline (nothing is written to ``out`` unless every step passes):
 """
 from __future__ import annotations
 
-import json
 import logging
 import os
 import tempfile
@@ -31,18 +30,16 @@ import numpy as np
 import onnx
 import torch
 
-from occflownet import __version__
+from occflownet import __version__, contract
 from occflownet.config import CAMERAS, CLASS_COLORS, CLASS_NAMES, FREE, GRID
+from occflownet.contract import CONTRACT_VERSION as CONTRACT
+from occflownet.contract import INPUT_NAMES, OUTPUT_NAMES, calibration_arrays
 from occflownet.model import InferenceGraph, ModelConfig, OccupancyModel
-from occflownet.rig import calibration_arrays
 
 from export.parity import ParityCase, ParitySample, check_parity, default_parity_samples
 
 OPSET = 18
 MAX_IR_VERSION = 10  # onnxruntime 1.31 reads IR <= 13; opset 18 needs IR >= 8
-INPUT_NAMES = ("images", "intrinsics", "cam2ego")
-OUTPUT_NAMES = ("occupancy", "density")
-CONTRACT = "v1"
 
 
 class ExportError(RuntimeError):
@@ -63,7 +60,8 @@ class ExportResult:
 
 
 def contract_metadata(cfg: ModelConfig, extra: dict | None = None) -> dict:
-    """The metadata_props of contract v1 (values are JSON-encoded when written)."""
+    """The metadata_props of contract v1 (values are JSON-encoded when written), checked by the contract's own
+    parser (``contract.parse_metadata``) so that every consumer can read what export writes."""
     calib = dict(cfg.default_calibration)
     if "image_size" not in calib:
         raise ExportError("the model config's default_calibration lacks 'image_size' [w, h]")
@@ -82,6 +80,13 @@ def contract_metadata(cfg: ModelConfig, extra: dict | None = None) -> dict:
         "model_config": cfg.to_dict(),
     }
     meta.update(extra or {})
+    missing = [k for k in contract.METADATA_KEYS if k not in meta]
+    try:
+        if missing:
+            raise contract.ContractError(f"metadata lacks {missing}")
+        contract.parse_metadata(contract.encode_metadata(meta), "the exported metadata")
+    except contract.ContractError as exc:
+        raise ExportError(str(exc)) from None
     return meta
 
 
@@ -183,9 +188,9 @@ def finalize_proto(proto: onnx.ModelProto, metadata: dict | None) -> onnx.ModelP
     deterministic_scatter_add(proto)
     portable_resize(proto)
     del proto.metadata_props[:]
-    for key, value in (metadata or {}).items():
+    for key, value in contract.encode_metadata(metadata or {}).items():
         entry = proto.metadata_props.add()
-        entry.key, entry.value = key, json.dumps(value)
+        entry.key, entry.value = key, value
     proto.ir_version = min(proto.ir_version, MAX_IR_VERSION)
     validate_proto(proto)
     return proto
@@ -206,20 +211,19 @@ def validate_proto(proto: onnx.ModelProto) -> None:
 
 
 def check_io(proto: onnx.ModelProto) -> None:
-    """Inputs/outputs exactly as contract v1 (names, element types, ranks, static dims)."""
-    u8, f32 = onnx.TensorProto.UINT8, onnx.TensorProto.FLOAT
-    want_in = {"images": (u8, [None, 6, None, None, 3]), "intrinsics": (f32, [None, 6, 3, 3]),
-               "cam2ego": (f32, [None, 6, 4, 4])}
-    want_out = {"occupancy": (u8, [None, *GRID.shape]), "density": (f32, [None, *GRID.shape])}
-    for values, want in ((proto.graph.input, want_in), (proto.graph.output, want_out)):
-        got = {v.name: v for v in values}
-        if list(got) != list(want):
-            raise ExportError(f"graph inputs/outputs {list(got)} differ from contract v1 {list(want)}")
-        for name, (etype, dims) in want.items():
-            t = got[name].type.tensor_type
-            shape = [d.dim_value if d.HasField("dim_value") else None for d in t.shape.dim]
-            if t.elem_type != etype or shape != dims:
-                raise ExportError(f"{name}: type {t.elem_type} shape {shape}, contract v1 wants {etype} {dims}")
+    """Inputs/outputs exactly as contract v1 (names and order, element types, ranks, static dims); ExportError."""
+    dtypes = {onnx.TensorProto.UINT8: "uint8", onnx.TensorProto.FLOAT: "float32"}
+
+    def triples(values):
+        return [(v.name, dtypes.get(v.type.tensor_type.elem_type, str(v.type.tensor_type.elem_type)),
+                 [d.dim_value if d.HasField("dim_value") else None for d in v.type.tensor_type.shape.dim])
+                for v in values]
+
+    try:
+        contract.check_signature(triples(proto.graph.input), triples(proto.graph.output), "exported graph",
+                                 exact=True)
+    except contract.ContractError as exc:
+        raise ExportError(str(exc)) from None
 
 
 def export_model(model: OccupancyModel, cfg: ModelConfig, out: str | Path, *,

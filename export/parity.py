@@ -12,11 +12,11 @@ import numpy as np
 import torch
 
 from occflownet.config import CAMERAS
+from occflownet.contract import calibration_arrays, load_calibration
 from occflownet.geometry import rotation_z
-from occflownet.inference_io import calibration_for_images, create_session, load_calibration, load_image_folder
-from occflownet.inference_io import run_session
+from occflownet.inference_io import create_session, load_image_folder, run_session
 from occflownet.model import ModelConfig, OccupancyModel
-from occflownet.rig import calibration_arrays, default_rig
+from occflownet.rig import default_rig
 
 DENSITY_TOL = 1e-4
 OCCUPANCY_MIN_AGREEMENT = 0.9999
@@ -73,7 +73,7 @@ def _random_images(rng, batch: int, height: int, width: int) -> np.ndarray:
 
 
 def _stack(calibs: list[dict], width: int, height: int):
-    arrays = [calibration_for_images(c, width, height) for c in calibs]
+    arrays = [calibration_arrays(c, width, height) for c in calibs]
     return np.stack([a[0] for a in arrays]), np.stack([a[1] for a in arrays])
 
 
@@ -84,7 +84,7 @@ def frame_sample(folder: str | Path, batch: int = 1) -> ParitySample:
     images = load_image_folder(folder)
     calib = load_calibration(folder / "calib.json")
     h, w = images.shape[1:3]
-    K, T = calibration_for_images(calib, w, h)
+    K, T = calibration_arrays(calib, w, h)
     if batch == 1:
         return ParitySample(f"frame:{folder.name}", images[None], K[None], T[None])
     turn = rotation_z(np.radians(-40.0)).astype(np.float32)

@@ -1,24 +1,23 @@
 """Torch-free inference pieces: image folders, calibration files, the onnxruntime session, grids and BEV pictures.
 
 Imports numpy, OpenCV and (lazily) onnxruntime only, never torch, so `occflownet predict --model` and embedders can
-use it on a machine without torch. Shapes follow the ONNX contract v1 (design notes section 7):
-images uint8 [B, 6, H, W, 3] RGB in ``CAMERAS`` order, intrinsics float32 [B, 6, 3, 3], cam2ego float32
-[B, 6, 4, 4] → occupancy uint8 [B, 200, 200, 16] ([x, y, z], 17 = free), density float32 [B, 200, 200, 16].
+use it on a machine without torch. Names, shapes, metadata, calibration checks and intrinsics rescaling are the
+contract's (:mod:`occflownet.contract`): images uint8 [B, 6, H, W, 3] RGB in ``CAMERAS`` order, intrinsics float32
+[B, 6, 3, 3], cam2ego float32 [B, 6, 4, 4] → occupancy uint8 [B, 200, 200, 16] ([x, y, z], 17 = free), density
+float32 [B, 200, 200, 16].
 """
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 
+from occflownet import contract
 from occflownet.config import CAMERAS, CLASS_COLORS, FREE, GRID
-from occflownet.rig import calibration_arrays
+from occflownet.contract import METADATA_KEYS, load_calibration  # noqa: F401  (re-exported for callers)
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
-METADATA_KEYS = ("classes", "free_index", "grid", "cameras", "class_colors", "threshold", "input_size", "preset",
-                 "default_calibration", "occflownet_version", "onnx_contract")
 
 
 # ----------------------------------------------------------------------------------------------- inputs
@@ -61,53 +60,24 @@ def load_image_folder(folder: str | Path) -> np.ndarray:
     return np.stack(images)
 
 
-def load_calibration(path: str | Path) -> dict:
-    """Read a calibration JSON file (design notes section 3); ValueError naming the file if malformed."""
-    path = Path(path)
-    try:
-        calib = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise FileNotFoundError(f"calibration file not found: {path}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
-    if not isinstance(calib, dict):
-        raise ValueError(f"{path}: calibration must be a JSON object")
-    try:
-        calibration_arrays(calib)
-    except (KeyError, ValueError, TypeError) as exc:
-        raise ValueError(f"{path}: {exc}") from exc
-    return calib
-
-
 def calibration_for_images(calib: dict, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """(intrinsics float32 [6, 3, 3], cam2ego float32 [6, 4, 4]) for images of ``width × height``.
-
-    If the calibration states its ``image_size`` [w, h] and the images differ, the intrinsics are rescaled when the
-    aspect ratios agree (within 1%), otherwise ValueError: the calibration does not describe these images.
-    """
-    K, T = calibration_arrays(calib)
-    size = calib.get("image_size")
-    if size is not None and (int(size[0]), int(size[1])) != (width, height):
-        cw, ch = float(size[0]), float(size[1])
-        if abs((width / height) / (cw / ch) - 1.0) > 0.01:
-            raise ValueError(f"calibration is for {int(cw)}x{int(ch)} images but the images are {width}x{height} "
-                             "(different aspect ratio)")
-        sx, sy = width / cw, height / ch
-        K = K.copy()
-        K[:, 0, :] *= sx
-        K[:, 1, :] *= sy
-        K[:, 0, 2] += 0.5 * sx - 0.5   # pixel-centre convention: (c + 0.5) * s - 0.5
-        K[:, 1, 2] += 0.5 * sy - 0.5
-    return K.astype(np.float32), T.astype(np.float32)
+    """(intrinsics float32 [6, 3, 3], cam2ego float32 [6, 4, 4]) for images of ``width × height``: the contract's
+    rule (:func:`occflownet.contract.calibration_arrays`; pixel-centre rescaling when the calibration states another
+    size of the same aspect ratio, CalibrationError (a ValueError) when the aspect ratio differs)."""
+    return contract.calibration_arrays(calib, width, height)
 
 
 # ----------------------------------------------------------------------------------------------- onnxruntime
-def create_session(model_path: str | Path, threads: int | None = None, spinning: bool = False):
-    """An onnxruntime CPU session with ``threads`` intra-op threads (default: all cores).
+def create_session(model_path: str | Path, threads: int | None = None, spinning: bool = False,
+                   providers: list[str] | None = None, check_contract: bool = True):
+    """An onnxruntime session (CPU by default) with ``threads`` intra-op threads (default: all cores), checked
+    against contract v1 (inputs, outputs, metadata) unless ``check_contract=False``. The one place sessions are
+    made: predict, eval --model, export parity and variants, and the server.
 
     ``spinning=False`` lets idle worker threads sleep instead of busy-waiting: on a loaded machine (a server
     sharing its cores, several processes) this cut tiny's p50 from 172 to 125 ms in our measurements; on an idle
-    machine spinning can be a few percent faster."""
+    machine spinning can be a few percent faster. Raises FileNotFoundError, ValueError (cannot load) or
+    ContractError (a ValueError), each naming the file."""
     import onnxruntime as ort
 
     model_path = Path(model_path)
@@ -116,37 +86,32 @@ def create_session(model_path: str | Path, threads: int | None = None, spinning:
     so = ort.SessionOptions()
     so.intra_op_num_threads = int(threads or os.cpu_count() or 1)
     so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
     try:
-        return ort.InferenceSession(str(model_path), so, providers=["CPUExecutionProvider"])
-    except Exception as exc:
-        raise ValueError(f"{model_path}: onnxruntime cannot load this model ({exc})") from exc
+        session = ort.InferenceSession(str(model_path), so, providers=providers or ["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises several unrelated types for unreadable files
+        raise ValueError(f"{model_path}: onnxruntime cannot load this model ({type(exc).__name__}: {exc})") from exc
+    if check_contract:
+        contract.check_session(session, str(model_path))
+    return session
 
 
 def read_metadata(session) -> dict:
-    """The model's metadata_props, JSON-decoded (keys: see ``METADATA_KEYS``)."""
-    raw = session.get_modelmeta().custom_metadata_map
-    out = {}
-    for k, v in raw.items():
-        try:
-            out[k] = json.loads(v)
-        except json.JSONDecodeError:
-            out[k] = v
-    return out
+    """The model's metadata_props, JSON-decoded (keys: ``contract.METADATA_KEYS``, plus any others)."""
+    return contract.decode_metadata(session.get_modelmeta().custom_metadata_map)
 
 
-def run_session(session, images: np.ndarray, intrinsics: np.ndarray, cam2ego: np.ndarray):
-    """Run the v1 graph. Accepts one sample ([6, ...]) or a batch ([B, 6, ...]); returns the same rank
-    (occupancy uint8 [(B,) 200, 200, 16], density float32 [(B,) 200, 200, 16])."""
+def run_session(session, images: np.ndarray, intrinsics: np.ndarray, cam2ego: np.ndarray,
+                outputs: tuple[str, ...] = contract.OUTPUT_NAMES):
+    """Run the v1 graph. Accepts one sample ([6, ...]) or a batch ([B, 6, ...]); returns the requested outputs
+    (default occupancy uint8 [(B,) 200, 200, 16], density float32 [(B,) 200, 200, 16]) at the same rank."""
     single = images.ndim == 4
     if single:
         images, intrinsics, cam2ego = images[None], intrinsics[None], cam2ego[None]
-    feeds = {"images": np.ascontiguousarray(images, dtype=np.uint8),
-             "intrinsics": np.ascontiguousarray(intrinsics, dtype=np.float32),
-             "cam2ego": np.ascontiguousarray(cam2ego, dtype=np.float32)}
-    occupancy, density = session.run(["occupancy", "density"], feeds)
-    return (occupancy[0], density[0]) if single else (occupancy, density)
+    results = session.run(list(outputs), contract.make_feeds(images, intrinsics, cam2ego))
+    return tuple(r[0] for r in results) if single else tuple(results)
 
 
 # ----------------------------------------------------------------------------------------------- outputs

@@ -3,11 +3,14 @@
 The synthetic world uses it; a model records the rig it was trained on as the default calibration of its ONNX
 file. Frames: ``cam2ego`` maps the OpenCV camera frame (x right, y down, z forward) into the ego frame
 (x forward, y left, z up). Intrinsics are for an image of ``width × height`` pixels (nuScenes: 1600 × 900).
+Parsing and validating calibration JSON is the contract's (:mod:`occflownet.contract`); this module only makes
+the training rig.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from occflownet import contract
 from occflownet.config import CAMERAS
 
 # name: (position in the ego frame [m], yaw of the optical axis about +z [deg], focal length at 1600 px width)
@@ -51,28 +54,10 @@ def default_rig(width: int = 1600, height: int = 900) -> dict:
 
 
 def calibration_arrays(calib: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Calibration JSON → (intrinsics float32 [6, 3, 3], cam2ego float32 [6, 4, 4]) in camera order.
+    """Calibration JSON → (intrinsics float32 [6, 3, 3], cam2ego float32 [6, 4, 4]) in camera order, as stated.
 
-    Raises ``KeyError`` naming the missing camera or field, ``ValueError`` for wrong shapes or non-finite values.
+    The contract's strict check (:func:`occflownet.contract.validate_calibration`): raises
+    ``MissingCalibrationField`` (a KeyError and a ValueError) naming a missing camera or field, ``CalibrationError``
+    (a ValueError) for wrong shapes, non-finite values, a singular K, bad last rows or a non-rotation.
     """
-    cams = calib.get("cameras")
-    if not isinstance(cams, dict):
-        raise KeyError("calibration has no 'cameras' object")
-    K, T = [], []
-    for name in CAMERAS:
-        if name not in cams:
-            raise KeyError(f"calibration lacks camera {name}")
-        for field in ("intrinsic", "cam2ego"):
-            if field not in cams[name]:
-                raise KeyError(f"calibration of {name} lacks '{field}'")
-        k = np.asarray(cams[name]["intrinsic"], dtype=np.float64)
-        t = np.asarray(cams[name]["cam2ego"], dtype=np.float64)
-        if k.shape != (3, 3) or t.shape != (4, 4):
-            raise ValueError(f"{name}: intrinsic must be 3x3 and cam2ego 4x4, got {k.shape} and {t.shape}")
-        if not (np.isfinite(k).all() and np.isfinite(t).all()):
-            raise ValueError(f"{name}: calibration contains NaN or inf")
-        if abs(np.linalg.det(k)) < 1e-9:
-            raise ValueError(f"{name}: intrinsic matrix is singular")
-        K.append(k)
-        T.append(t)
-    return np.stack(K).astype(np.float32), np.stack(T).astype(np.float32)
+    return contract.calibration_arrays(calib)

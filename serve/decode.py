@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from serve.calibration import scale_intrinsics
+from occflownet.contract import scale_intrinsics
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # JPEG start-of-frame markers (baseline, extended, progressive, lossless, arithmetic); not DHT (C4), JPG (C8), DAC (CC).
@@ -153,7 +153,8 @@ def common_size(sizes: list[tuple[int, int]]) -> tuple[int, int]:
 
 def intrinsics_for_size(intrinsics: np.ndarray, sizes: list[tuple[int, int]], size: tuple[int, int]) -> np.ndarray:
     """Intrinsics [6, 3, 3] (each for its image's (w_i, h_i) in ``sizes``) → float32 [6, 3, 3] for images resized
-    to ``size`` (w, h): K' = diag(w / w_i, h / h_i, 1) · K; unchanged where the size already matches."""
+    to ``size`` (w, h) by :func:`decode_image` (OpenCV, pixel-centre convention): the contract's pixel-centre rule
+    (``occflownet.contract.scale_intrinsics``, sx = w / w_i, sy = h / h_i); unchanged where the size matches."""
     w, h = size
     K = intrinsics.astype(np.float64).copy()
     for i, (wi, hi) in enumerate(sizes):

@@ -13,6 +13,7 @@ from serve_fixtures import FRAME_DIR, encode_image, fake_metadata, synthetic_ima
 from occflownet.config import CAMERAS, CLASS_COLORS, FREE
 from occflownet.rig import default_rig
 from serve.calibration import CalibrationError, calibration_for_sizes, parse_calibration, validate_calibration
+from occflownet.contract import scale_intrinsics
 from serve.decode import ImageError, check_header, common_size, decode_image, image_header, intrinsics_for_size
 from serve.encode import NotAcceptable, encode, negotiate, top_down_rgb
 from serve.limits import BodySizeLimitMiddleware, InferenceGate, Saturated
@@ -102,10 +103,12 @@ def test_common_size_decode_into_place_and_intrinsics():
     np.testing.assert_array_equal(frame[0], cv2.resize(big, (96, 54), interpolation=cv2.INTER_AREA))
     np.testing.assert_array_equal(frame[1], small[1])
     K = np.tile(np.array([[100.0, 0, 48], [0, 100.0, 27], [0, 0, 1]], np.float32), (6, 1, 1))
-    K[0] *= np.array([[2], [2], [1]], np.float32)   # CAM_FRONT's intrinsics are for its 192x108 image
+    # CAM_FRONT's intrinsics are for its 192x108 image (pixel-centre rule: f·2, (c + 0.5)·2 − 0.5)
+    K[0] = scale_intrinsics(K[0], 2.0, 2.0)
+    np.testing.assert_allclose(K[0], [[200, 0, 96.5], [0, 200, 54.5], [0, 0, 1]])
     K2 = intrinsics_for_size(K, [(192, 108)] + [(96, 54)] * 5, (96, 54))
     assert K2.dtype == np.float32
-    np.testing.assert_allclose(K2, np.tile(K[1], (6, 1, 1)))         # halved back; the others unchanged
+    np.testing.assert_allclose(K2, np.tile(K[1], (6, 1, 1)))         # halved back exactly; the others unchanged
 
 
 # ---------------------------------------------------------------- calibration
@@ -149,7 +152,9 @@ def test_parse_calibration_rejects_non_json():
 def test_default_calibration_scaled_for_same_aspect_and_refused_otherwise():
     K, T = calibration_for_sizes(None, _Meta, [(960, 540)] * 6)
     K480 = np.array(_calib()["cameras"]["CAM_FRONT"]["intrinsic"])
-    np.testing.assert_allclose(K[0], np.diag([2, 2, 1]) @ K480, rtol=1e-6)
+    # pixel-centre rule, as predict and the model's preprocessing: f' = 2f, c' = (c + 0.5)·2 − 0.5
+    np.testing.assert_allclose(K[0], [[2 * K480[0, 0], 0, 2 * K480[0, 2] + 0.5], [0, 2 * K480[1, 1], 2 * K480[1, 2] + 0.5],
+                                      [0, 0, 1]], rtol=1e-6)
     assert T.dtype == np.float32 and T.shape == (6, 4, 4)
     with pytest.raises(CalibrationError, match="CAM_FRONT: image is 500x500 .*send a 'calibration' part"):
         calibration_for_sizes(None, _Meta, [(500, 500)] * 6)
@@ -165,7 +170,8 @@ def test_request_calibration_without_size_is_taken_as_is():
 def test_per_camera_image_size_overrides_top_level():
     calib = _calib()
     calib["cameras"]["CAM_BACK"]["image_size"] = [960, 540]
-    calib["cameras"]["CAM_BACK"]["intrinsic"] = default_rig(960, 540)["cameras"]["CAM_BACK"]["intrinsic"]
+    K480 = np.array(calib["cameras"]["CAM_BACK"]["intrinsic"])
+    calib["cameras"]["CAM_BACK"]["intrinsic"] = scale_intrinsics(K480, 2.0, 2.0).tolist()   # for 960x540
     K, _ = calibration_for_sizes(calib, _Meta, [(480, 270)] * 6)
     np.testing.assert_allclose(K[3], np.array(_calib()["cameras"]["CAM_BACK"]["intrinsic"]), rtol=1e-6)
 
