@@ -352,12 +352,13 @@ struct Runner::Impl {
     } bound;
 };
 
-Runner::Runner(const std::string& model_path, const RunnerOptions& options) : impl_(std::make_unique<Impl>()) {
+Runner::Runner(const std::string& model_path, const RunnerOptions& options) {
+    init_api();  // first: even empty Ort:: handles call the API when destroyed
     {
         std::ifstream probe(model_path, std::ios::binary);
         if (!probe) fail(Error::kIO, "model file not found or unreadable: " + model_path);
     }
-    init_api();
+    impl_ = std::make_unique<Impl>();
     try {
         impl_->env = Ort::Env(ORT_LOGGING_LEVEL_ERROR, "occflownet");
         Ort::SessionOptions so;

@@ -1,0 +1,85 @@
+"""C++ (occflownet-run) against Python onnxruntime on the same model and frame, interleaved in one run.
+
+    python embed/bench.py --model m.onnx [--images DIR] [--calib calib.json] [--runs 20] [--rounds 3] [--threads 2]
+
+Both sides: the six JPEGs are read once; each timed run decodes them (C++: libjpeg-turbo into the input buffer;
+Python: OpenCV imdecode + RGB + np.stack, as `occflownet predict`) and runs one inference with the same session
+settings (intra-op threads, spinning off, all graph optimisations). Each round runs Python then C++ (a fresh process,
+after one warm-up run each); p50s per round and the median over rounds are printed with the load average.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+FRAME = REPO.parent / "shared" / "data" / "nuscenes-frame"
+
+
+def python_round(model: Path, images_dir: Path, calib: Path, runs: int, threads: int) -> tuple[float, float]:
+    from occflownet.inference_io import (calibration_for_images, create_session, decode_image, find_camera_images,
+                                         load_calibration, run_session)
+
+    session = create_session(model, threads=threads)
+    blobs = [(p.read_bytes(), str(p)) for p in find_camera_images(images_dir).values()]
+    decode = lambda: np.stack([decode_image(b, n) for b, n in blobs])  # noqa: E731
+    images = decode()
+    K, T = calibration_for_images(load_calibration(calib), images.shape[2], images.shape[1])
+    run_session(session, images, K, T)  # warm-up
+    total, infer = [], []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        images = decode()
+        t1 = time.perf_counter()
+        run_session(session, images, K, T)
+        t2 = time.perf_counter()
+        total.append((t2 - t0) * 1e3)
+        infer.append((t2 - t1) * 1e3)
+    return float(np.median(infer)), float(np.median(total))
+
+
+def cpp_round(binary: Path, model: Path, images_dir: Path, calib: Path, runs: int, threads: int, out: Path):
+    proc = subprocess.run([str(binary), "--model", str(model), "--images", str(images_dir), "--calib", str(calib),
+                           "--out", str(out), "--runs", str(runs), "--threads", str(threads)],
+                          capture_output=True, text=True, check=True)
+    m = re.search(r"p50 inference: ([\d.]+) ms, p50 decode\+inference: ([\d.]+) ms", proc.stdout)
+    return float(m[1]), float(m[2])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", type=Path, required=True)
+    ap.add_argument("--images", type=Path, default=FRAME)
+    ap.add_argument("--calib", type=Path, default=None)
+    ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--binary", type=Path, default=REPO / "embed" / "build" / "release" / "occflownet-run")
+    a = ap.parse_args()
+    calib = a.calib or a.images / "calib.json"
+    out = Path("/tmp") / f"embed-bench-{os.getpid()}.npy"
+    print(f"model {a.model}, frame {a.images}, {a.runs} runs x {a.rounds} rounds, {a.threads} intra-op threads, "
+          f"load average {os.getloadavg()[0]:.2f} at start")
+    rows = {"python": [], "c++": []}
+    for r in range(a.rounds):
+        rows["python"].append(python_round(a.model, a.images, calib, a.runs, a.threads))
+        rows["c++"].append(cpp_round(a.binary, a.model, a.images, calib, a.runs, a.threads, out))
+        print(f"round {r + 1}: python p50 {rows['python'][-1][0]:.1f} / {rows['python'][-1][1]:.1f} ms, "
+              f"c++ p50 {rows['c++'][-1][0]:.1f} / {rows['c++'][-1][1]:.1f} ms (inference / decode+inference)")
+    out.unlink(missing_ok=True)
+    print(f"load average {os.getloadavg()[0]:.2f} at end")
+    print("| side | p50 inference (median of rounds) | p50 decode + inference | rounds (inference) |")
+    print("|---|---|---|---|")
+    for side, vals in rows.items():
+        inf, tot = np.median([v[0] for v in vals]), np.median([v[1] for v in vals])
+        print(f"| {side} | {inf:.1f} ms | {tot:.1f} ms | {', '.join(f'{v[0]:.1f}' for v in vals)} |")
+
+
+if __name__ == "__main__":
+    main()
