@@ -93,12 +93,22 @@ def test_voxelize_axis_aligned_and_rotated_boxes():
     car = np.argwhere(sem == 4)
     assert {tuple(v) for v in car} == {(i, j, k) for i in (10, 11) for j in (9, 10) for k in (2, 3, 4)}
     assert (sem[:, :, 2][sem[:, :, 2] != 4] == 11).all() and (sem[:, :, [0, 1, 5, 6, 7]] != 11).all()
-    # rotated box: every voxel holding a point of the box is marked; every marked voxel touches the box
+    # a 2.2 x 2.2 x 1.4 m box (x, y in [-1.1, 1.1]: i, j 7..12; z in [0.4, 1.8]: k 3..6): Occ3D-like surface
+    # labels, the 4 x 4 x 2 voxels wholly inside stay free
+    world = small_world(box((0.0, 0.0, 1.1), (1.1, 1.1, 0.7), 0.0, raw=17))
+    sem = voxelize(world, world.static, np.eye(4), grid)
+    assert (sem == 4).sum() == 6 * 6 * 4 - 4 * 4 * 2 and (sem[7:13, 7:13, 3:7] == 4).sum() == 112
+    assert (sem[8:12, 8:12, 4:6] == FREE).all()
+    # rotated box: every voxel holding a point of the box's surface is marked; every marked voxel touches the
+    # surface (it overlaps the box and is not wholly inside it)
     yaw = 0.7
     world = small_world(box((0.3, -0.2, 0.9), (1.3, 0.4, 0.6), yaw, raw=17))
     sem = voxelize(world, world.static, np.eye(4), grid)
     rng = np.random.default_rng(0)
-    local = rng.uniform(-1, 1, (20000, 3)) * [1.3, 0.4, 0.6]
+    local = rng.uniform(-1, 1, (20000, 3))
+    face = rng.integers(0, 3, len(local))
+    local[np.arange(len(local)), face] = np.sign(local[np.arange(len(local)), face])   # onto one of the 6 faces
+    local *= [1.3, 0.4, 0.6]
     c, s = np.cos(yaw), np.sin(yaw)
     pts = np.stack([c * local[:, 0] - s * local[:, 1], s * local[:, 0] + c * local[:, 1], local[:, 2]], 1)
     pts += [0.3, -0.2, 0.9]

@@ -1,7 +1,9 @@
 """Occ3D ground truth from the world's geometry: semantics by voxelisation, visibility masks by ray traversal.
 
-``semantics``: a voxel takes the class of the geometry occupying it (any overlap with a box's solid, or the ground
-plane z = 0 passing through it); where several overlap, ``materials.voxel_priority`` decides (objects win over
+``semantics``: a voxel takes the class of the geometry whose *surface* lies in it (it overlaps a box but is not
+wholly inside it, or the ground plane z = 0 passes through it): like Occ3D, whose labels come from LiDAR returns and
+reconstructed surfaces, the inside of a building or a car is free (and outside ``mask_camera``, which stops at the
+first occupied voxel). Where several overlap, ``materials.voxel_priority`` decides (objects win over
 ground and facades). ``traverse``: exact voxel walk (Amanatides & Woo) of many rays at once, marking every voxel a
 ray passes through up to and including the first occupied one. All arrays are indexed [x, y, z] in the ego frame
 of one keyframe, like Occ3D.
@@ -46,10 +48,17 @@ def voxelize(world: World, boxes: Boxes, ego2global: np.ndarray, grid: Grid = GR
         dy = yc[None, j0:j1] - cy
         h = vs / 2
         # separating axis test of each voxel column's square against the rotated rectangle (strict overlap)
-        along = np.abs(c * dx + s * dy) < hx + h * (abs(c) + abs(s))
-        across = np.abs(-s * dx + c * dy) < hy + h * (abs(s) + abs(c))
-        cols = along & across
-        sem[i0:i1, j0:j1, k0:k1][cols] = occ[i]
+        u, v = np.abs(c * dx + s * dy), np.abs(-s * dx + c * dy)
+        reach = h * (abs(c) + abs(s))
+        cols = (u < hx + reach) & (v < hy + reach)
+        # Occ3D labels surfaces, not solids: a voxel wholly inside the box (its column inside the rectangle and
+        # its z extent inside the box's) is left free, like the inside of a real building or car
+        inner_cols = (u + reach < hx) & (v + reach < hy)       # strict: a voxel on a face holds that face
+        z_lo = lower[2] + np.arange(k0, k1) * vs
+        inner_z = (z_lo > cz - hz) & (z_lo + vs < cz + hz)
+        shell = cols[:, :, None] & ~(inner_cols[:, :, None] & inner_z[None, None, :])
+        block = sem[i0:i1, j0:j1, k0:k1]
+        block[shell] = occ[i]
     return sem
 
 
