@@ -1,0 +1,53 @@
+"""Geometry IoU inside mask_camera as a function of the fusion threshold τ, for one checkpoint on one split.
+
+    python benchmarks/threshold_sweep.py --checkpoint RUN/checkpoints/last.pt --dataroot W [--split all]
+
+Shows whether a model that scores low at its stored τ has learned geometry whose σ lies on another scale (the
+2D rows), and where its geometry IoU peaks. Every ``--every``-th keyframe of the split is evaluated.
+"""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+TAUS = (0.02, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", required=True)
+    ap.add_argument("--dataroot", required=True)
+    ap.add_argument("--split", default="all")
+    ap.add_argument("--every", type=int, default=2)
+    args = ap.parse_args()
+
+    from occflownet.config import FREE
+    from occflownet.data.loaders import load_occupancy, load_sample_images
+    from occflownet.evaluate import checkpoint_predictor, select_samples
+
+    samples = select_samples(args.dataroot, split=args.split)
+    predict = checkpoint_predictor(args.checkpoint)
+    tp, fp, fn = (np.zeros(len(TAUS)) for _ in range(3))
+    for position in samples.positions[::args.every]:
+        sample = samples.index[int(position)]
+        images = load_sample_images(samples.dataroot, sample)[None]
+        _, density = predict(images, sample.intrinsics[None].astype(np.float32),
+                             sample.cam2current_ego()[None].astype(np.float32))
+        labels = load_occupancy(samples.dataroot, sample.occupancy_path)
+        mask = labels.mask_camera.astype(bool)
+        occupied, sigma = (labels.semantics != FREE)[mask], np.asarray(density)[0][mask]
+        for i, tau in enumerate(TAUS):
+            pred = sigma >= tau
+            tp[i] += np.sum(pred & occupied)
+            fp[i] += np.sum(pred & ~occupied)
+            fn[i] += np.sum(~pred & occupied)
+    iou = tp / np.maximum(tp + fp + fn, 1)
+    print("| τ | " + " | ".join(f"{t:g}" for t in TAUS) + " |")
+    print("|---|" + "---|" * len(TAUS))
+    print("| geometry IoU % | " + " | ".join(f"{100 * v:.1f}" for v in iou) + " |")
+    print(f"best τ {TAUS[int(np.argmax(iou))]:g}: {100 * iou.max():.1f} %")
+
+
+if __name__ == "__main__":
+    main()
