@@ -33,6 +33,9 @@ def add_arguments(p):
     p.add_argument("--max-samples", type=_positive_int, default=None, metavar="N",
                    help="evaluate only the first N samples of the split")
     p.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (the slower metric, ~0.3 s per sample)")
+    p.add_argument("--no-fog", action="store_true",
+                   help="skip the fog metric (predicted vs labelled occupied voxels in mask_camera, split by whether "
+                        "a training ray crosses them; builds the rays of t in [-3, 3], ~1.5 s per sample)")
     p.add_argument("--batch-size", type=_positive_int, default=1, metavar="N", help="samples per model call")
     p.add_argument("--threads", type=_positive_int, default=None,
                    help="with --model: onnxruntime intra-op threads (default: all cores)")
@@ -67,7 +70,8 @@ def run(args) -> int:
 
             predict = checkpoint_predictor(args.checkpoint)
         result = evaluate(samples, predict, batch_size=args.batch_size, save_predictions=args.save_predictions,
-                          rayiou=not args.no_rayiou, progress=not args.quiet)
+                          rayiou=not args.no_rayiou, progress=not args.quiet,
+                          fog_horizon=None if args.no_fog else 3)
     except (DatasetError, FileNotFoundError, KeyError, ValueError, OSError) as e:
         print(f"occflownet eval: error: {_message(e)}", file=sys.stderr)
         return 1
