@@ -79,16 +79,17 @@ def assert_no_sanitizer_report(proc: subprocess.CompletedProcess) -> None:
 
 # ----------------------------------------------------------------------------------------------- Python side
 def python_calibration(calib_path: Path, width: int, height: int):
-    """(intrinsics float32 [6, 3, 3], cam2ego [6, 4, 4]) by the Python rule in force: occflownet.contract's when that
-    module exists (the torch-free home the Python paths are moving to), else occflownet.inference_io's."""
-    from occflownet.inference_io import load_calibration
-
+    """(intrinsics float32 [6, 3, 3], cam2ego [6, 4, 4]) by the Python rule in force, imported when called:
+    ``occflownet.contract.calibration_arrays`` (the torch-free contract module) where it exists, else
+    ``occflownet.inference_io.calibration_for_images``."""
+    calib = json.loads(Path(calib_path).read_text())
     try:
-        from occflownet import contract  # noqa: F401  (may not exist yet)
-        rule = getattr(contract, "calibration_for_images")
-    except (ImportError, AttributeError):
-        from occflownet.inference_io import calibration_for_images as rule
-    return rule(load_calibration(calib_path), width, height)
+        from occflownet.contract import calibration_arrays
+    except ImportError:
+        from occflownet.inference_io import calibration_for_images
+
+        return calibration_for_images(calib, width, height)
+    return calibration_arrays(calib, width, height)
 
 
 def python_reference(model: Path, folder: Path, calib_path: Path):
