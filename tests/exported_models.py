@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import atexit
 import functools
+import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -22,6 +23,12 @@ def frame_available() -> bool:
 
 @functools.lru_cache(maxsize=None)
 def workdir() -> Path:
+    """A temporary folder removed at exit; with OCCFLOWNET_TEST_KEEP=DIR, DIR instead, kept (developer runs only:
+    the trained checkpoint found there is reused, so delete DIR after changing the model or the training)."""
+    if os.environ.get("OCCFLOWNET_TEST_KEEP"):
+        path = Path(os.environ["OCCFLOWNET_TEST_KEEP"])
+        path.mkdir(parents=True, exist_ok=True)
+        return path
     path = Path(tempfile.mkdtemp(prefix="occflownet-export-tests-"))
     atexit.register(shutil.rmtree, path, True)
     return path
@@ -52,6 +59,22 @@ def trained_tiny_checkpoint() -> Path:
                      "--width", "320", "--height", "180", "--margin", "60", "--no-progress"]) == 0
         assert main(["prepare", "--dataroot", str(root), "--quiet"]) == 0
     run = workdir() / "trained-run"
+    if os.environ.get("OCCFLOWNET_TEST_KEEP") and (run / "checkpoints" / "last.pt").is_file():
+        return run / "checkpoints" / "last.pt"
     assert main(["train", "--preset", "tiny", "--dataroot", str(root), "--out", str(run), "--split", "all",
                  "--supervision", "3d", "--max-steps", "80", "--num-workers", "0", "--quiet", "--seed", "0"]) == 0
     return run / "checkpoints" / "last.pt"
+
+
+@functools.lru_cache(maxsize=None)
+def exported_trained_tiny():
+    """(onnx path, ExportResult, model) of ``trained_tiny_checkpoint()`` exported with the parity check (incl. the
+    real frame when present): the model whose grid has occupied voxels, for runtime and path comparisons."""
+    from export.onnx_export import export_model
+    from occflownet.model import load_checkpoint
+
+    model, cfg, _ = load_checkpoint(trained_tiny_checkpoint())
+    model.eval()
+    frames = [FRAME] if frame_available() else []
+    result = export_model(model, cfg, workdir() / "trained-tiny.onnx", parity_frames=frames)
+    return result.path, result, model

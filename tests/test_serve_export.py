@@ -92,3 +92,65 @@ def test_real_export_served_over_http_matches_a_direct_run(tiny_model):
             assert r.json()["shape"] == [200, 200, 16]
         else:
             assert r.status_code == 400 and "calibration" in r.json()["error"]["message"]
+
+
+def _serve_folder(client, folder: Path, calib: bytes) -> np.ndarray:
+    files = {}
+    for cam in CAMERAS:
+        image = next(folder / f"{cam}{suffix}" for suffix in (".png", ".jpg") if (folder / f"{cam}{suffix}").is_file())
+        files[cam] = (image.name, image.read_bytes(), "image/png" if image.suffix == ".png" else "image/jpeg")
+    r = client.post("/v1/occupancy", files=files | {"calibration": (None, calib)},
+                    headers={"Accept": "application/x-npy"})
+    assert r.status_code == 200, r.text
+    return np.load(io.BytesIO(r.content))
+
+
+@pytest.mark.skipif(not FRAME_DIR.is_dir(), reason=f"shared real frame not found at {FRAME_DIR}")
+def test_predict_and_http_give_identical_grids_for_the_frame_and_its_half_size_copy(tmp_path):
+    """One calibration rule everywhere (issue 14, part 2): the real frame at 1600x900 and resized to 800x450 (PNG,
+    so both paths decode the same pixels; calib.json still says 1600x900), through `occflownet predict --model` and
+    through POST /v1/occupancy, gives identical grids; both fed the pixel-centre-rescaled intrinsics."""
+    from exported_models import exported_trained_tiny
+    from occflownet.cli import main
+    from occflownet.contract import calibration_arrays
+    from serve.app import create_app
+    from serve.model_runtime import ModelRuntime
+    from serve.settings import ServeSettings
+
+    model = exported_trained_tiny()[0]
+    half = tmp_path / "half"
+    half.mkdir()
+    for cam in CAMERAS:
+        image = cv2.imread(str(FRAME_DIR / f"{cam}.jpg"))
+        cv2.imwrite(str(half / f"{cam}.png"), cv2.resize(image, (800, 450), interpolation=cv2.INTER_AREA))
+    calib_bytes = (FRAME_DIR / "calib.json").read_bytes()
+    calib = json.loads(calib_bytes)
+    assert calib["image_size"] == [1600, 900]
+    settings = ServeSettings(model_path=str(model))
+    runtime = ModelRuntime.load(model, settings)
+    fed = []
+    real_infer = runtime.infer
+    runtime.infer = lambda *args: (fed.append(args), real_infer(*args))[1]
+    grids = {}
+    with TestClient(create_app(settings, runtime=runtime)) as client:
+        deadline = time.monotonic() + 120
+        while client.get("/readyz").status_code != 200:
+            assert time.monotonic() < deadline, client.get("/readyz").text
+            time.sleep(0.1)
+        for name, folder in (("full", FRAME_DIR), ("half", half)):
+            out = tmp_path / f"{name}.npz"
+            assert main(["predict", "--model", str(model), "--images", str(folder), "--calib",
+                         str(FRAME_DIR / "calib.json"), "--out", str(out)]) == 0
+            predicted = np.load(out)["occupancy"]
+            fed.clear()
+            served = _serve_folder(client, folder, calib_bytes)
+            np.testing.assert_array_equal(served, predicted)
+            grids[name] = served
+            (_, got_K, _), = fed
+            w, h = (1600, 900) if name == "full" else (800, 450)
+            np.testing.assert_array_equal(got_K, calibration_arrays(calib, w, h)[0])
+    K_full, K_half = calibration_arrays(calib, 1600, 900)[0], calibration_arrays(calib, 800, 450)[0]
+    np.testing.assert_allclose(K_half[:, :2, :2], K_full[:, :2, :2] / 2, rtol=1e-6)
+    np.testing.assert_allclose(K_half[:, :2, 2], (K_full[:, :2, 2] + 0.5) / 2 - 0.5, rtol=1e-6)   # pixel centres
+    assert np.mean(grids["full"] != 17) > 0.005                         # a trained model: an occupied grid
+    assert np.mean(grids["full"] == grids["half"]) > 0.99               # resizing first changes little
