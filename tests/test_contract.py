@@ -1,0 +1,196 @@
+"""occflownet.contract: the one torch-free definition of contract v1 (tensors, metadata, calibration, rescaling)."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from occflownet import contract
+from occflownet.config import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
+from occflownet.contract import (CalibrationError, ContractError, MissingCalibrationField, calibration_arrays,
+                                 check_signature, make_feeds, parse_metadata, rescale_intrinsics, scale_intrinsics,
+                                 validate_calibration)
+from occflownet.rig import default_rig
+
+
+def test_importing_the_contract_pulls_in_neither_torch_nor_onnx_nor_onnxruntime():
+    code = ("import sys, occflownet.contract, occflownet.inference_io; "
+            "bad = [m for m in ('torch', 'onnx', 'onnxruntime') if m in sys.modules]; assert not bad, bad")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+
+
+# ---------------------------------------------------------------- rescaling (pixel-centre rule)
+
+K0 = np.array([[1266.0, 0.3, 816.3], [0.0, 1260.5, 491.2], [0.0, 0.0, 1.0]])
+
+
+def test_scale_intrinsics_known_answer():
+    K = scale_intrinsics(K0, 0.5, 0.5)
+    np.testing.assert_allclose(K, [[633.0, 0.15, (816.3 + 0.5) * 0.5 - 0.5], [0.0, 630.25, (491.2 + 0.5) * 0.5 - 0.5],
+                                   [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize("sx,sy", [(0.5, 0.5), (0.3, 0.3), (2.0, 2.0), (800 / 1600, 450 / 900), (0.61, 0.6)])
+def test_rescaling_round_trips_exactly(sx, sy):
+    there = scale_intrinsics(K0, sx, sy)
+    np.testing.assert_allclose(scale_intrinsics(there, 1 / sx, 1 / sy), K0, rtol=1e-12, atol=1e-9)
+    # composition: resizing twice is one resize by the product
+    np.testing.assert_allclose(scale_intrinsics(there, 1.7, 1.7), scale_intrinsics(K0, 1.7 * sx, 1.7 * sy),
+                               rtol=1e-12, atol=1e-9)
+
+
+@pytest.mark.parametrize("size", [(800, 450), (533, 300), (1920, 1080)])
+def test_rescaled_intrinsics_follow_a_cv2_resized_blob(size):
+    """Known answer: a Gaussian blob drawn at the projection of a 3D point in a 1600x900 image lands, after
+    cv2.resize (INTER_AREA shrinking, INTER_LINEAR enlarging; half-pixel centres), where the rescaled K projects it."""
+    import cv2
+
+    W, H = 1600, 900
+    point = np.array([0.7, -0.4, 9.0])
+    uv = (K0 @ point)[:2] / point[2]
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+    blob = 250.0 * np.exp(-((xx - uv[0]) ** 2 + (yy - uv[1]) ** 2) / (2 * 14.0 ** 2))
+    method = cv2.INTER_AREA if size[0] < W else cv2.INTER_LINEAR
+    small = cv2.resize(blob.astype(np.float32), size, interpolation=method).astype(np.float64)
+    ys, xs = np.mgrid[0:size[1], 0:size[0]]
+    got = np.array([(small * xs).sum() / small.sum(), (small * ys).sum() / small.sum()])
+    K = rescale_intrinsics(K0, (W, H), size)
+    want = (K @ point)[:2] / point[2]
+    assert np.abs(got - want).max() < 0.02, (got, want)
+    # the other rule (K' = diag(sx, sy, 1)·K) is off by (s − 1)/2 pixels, e.g. a quarter pixel at half size
+    naive = (np.diag([size[0] / W, size[1] / H, 1.0]) @ K0 @ point)[:2] / point[2]
+    assert np.abs(naive - want).max() == pytest.approx(abs(size[0] / W - 1) / 2, rel=1e-6)
+
+
+def test_a_different_aspect_ratio_is_refused_naming_the_camera():
+    with pytest.raises(CalibrationError, match=r"CAM_BACK: image is 1000x1000 but the calibration is for 1600x900 "
+                                               r"\(aspect ratio 1.000 vs 1.778\)"):
+        rescale_intrinsics(K0, (1600, 900), (1000, 1000), camera="CAM_BACK")
+    np.testing.assert_array_equal(rescale_intrinsics(K0, None, (1000, 1000)), K0)       # no size: as they come
+    np.testing.assert_array_equal(rescale_intrinsics(K0, (1600, 900), (1605, 900)), scale_intrinsics(K0, 1605 / 1600, 1))
+
+
+def test_calibration_arrays_for_an_image_size_and_per_camera_sizes():
+    calib = default_rig(480, 270)
+    K, T = calibration_arrays(calib, 960, 540)
+    assert K.shape == (6, 3, 3) and T.shape == (6, 4, 4) and K.dtype == T.dtype == np.float32
+    np.testing.assert_allclose(K, scale_intrinsics(np.array([c["intrinsic"] for c in calib["cameras"].values()]),
+                                                   2.0, 2.0), rtol=1e-6)
+    np.testing.assert_allclose(calibration_arrays(calib)[0], calibration_arrays(calib, 480, 270)[0])
+    calib["cameras"]["CAM_BACK"]["image_size"] = [960, 540]                 # this camera's K is for 960x540
+    calib["cameras"]["CAM_BACK"]["intrinsic"] = scale_intrinsics(np.array(
+        calib["cameras"]["CAM_BACK"]["intrinsic"]), 2.0, 2.0).tolist()
+    K2, _ = calibration_arrays(calib, 480, 270)
+    np.testing.assert_allclose(K2, calibration_arrays(default_rig(480, 270))[0], rtol=1e-6, atol=1e-5)
+    cal = validate_calibration(calib)
+    assert cal.image_sizes == ((480, 270),) * 3 + ((960, 540),) + ((480, 270),) * 2
+
+
+# ---------------------------------------------------------------- validation
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda c: c["cameras"]["CAM_FRONT"]["intrinsic"].__setitem__(2, [0, 0, 2]), "CAM_FRONT intrinsic last row"),
+    (lambda c: c["cameras"]["CAM_FRONT"]["intrinsic"][0].__setitem__(0, -5.0), "CAM_FRONT intrinsic focal"),
+    (lambda c: c["cameras"]["CAM_BACK"]["cam2ego"].__setitem__(3, [0, 0, 1, 1]), "CAM_BACK cam2ego last row"),
+    (lambda c: c["cameras"]["CAM_BACK"]["cam2ego"][0].__setitem__(0, 1.1), "CAM_BACK cam2ego rotation"),
+    (lambda c: c["cameras"]["CAM_BACK_LEFT"]["cam2ego"][0].__setitem__(1, float("nan")), "CAM_BACK_LEFT cam2ego .*NaN"),
+    (lambda c: c.__setitem__("image_size", [480]), "calibration image_size must be"),
+    (lambda c: c["cameras"]["CAM_BACK"].__setitem__("image_size", [0, 5]), "CAM_BACK image_size must be"),
+])
+def test_bad_calibrations_name_camera_and_field(mutate, message):
+    calib = default_rig(480, 270)
+    mutate(calib)
+    with pytest.raises(CalibrationError, match=message):
+        validate_calibration(calib)
+
+
+def test_a_mirrored_camera_is_not_a_rotation():
+    calib = default_rig(480, 270)
+    T = np.array(calib["cameras"]["CAM_FRONT"]["cam2ego"])
+    T[:3, 0] *= -1                                                         # orthonormal, det −1
+    calib["cameras"]["CAM_FRONT"]["cam2ego"] = T.tolist()
+    with pytest.raises(CalibrationError, match="CAM_FRONT cam2ego rotation is not a proper rotation"):
+        validate_calibration(calib)
+
+
+def test_missing_fields_are_key_errors_too():
+    calib = default_rig(480, 270)
+    del calib["cameras"]["CAM_FRONT"]["intrinsic"]
+    with pytest.raises(MissingCalibrationField) as info:
+        validate_calibration(calib)
+    assert isinstance(info.value, KeyError) and isinstance(info.value, ValueError)
+    assert str(info.value) == "calibration of CAM_FRONT lacks 'intrinsic'"
+
+
+def test_load_calibration_names_the_file(tmp_path):
+    path = tmp_path / "calib.json"
+    path.write_text("{broken")
+    with pytest.raises(CalibrationError, match="calib.json is not valid UTF-8 JSON"):
+        contract.load_calibration(path)
+    calib = default_rig(480, 270)
+    calib["cameras"]["CAM_FRONT"]["cam2ego"][3] = [1, 0, 0, 1]
+    path.write_text(json.dumps(calib))
+    with pytest.raises(CalibrationError, match=r"calib.json: CAM_FRONT cam2ego last row"):
+        contract.load_calibration(path)
+    with pytest.raises(FileNotFoundError, match="calibration file not found"):
+        contract.load_calibration(tmp_path / "nope.json")
+
+
+# ---------------------------------------------------------------- tensors and metadata
+
+GOOD_IN = [("images", "uint8", [None, 6, None, None, 3]), ("intrinsics", "float32", [None, 6, 3, 3]),
+           ("cam2ego", "float32", [None, 6, 4, 4])]
+GOOD_OUT = [("occupancy", "uint8", [None, 200, 200, 16]), ("density", "float32", [None, 200, 200, 16])]
+
+
+def test_check_signature():
+    check_signature(GOOD_IN, GOOD_OUT, "m.onnx", exact=True)
+    ort_style = [("images", "tensor(uint8)", ["batch", 6, 900, 1600, 3])] + GOOD_IN[1:]
+    check_signature(ort_style, GOOD_OUT, "m.onnx")                          # a pinned image size is allowed
+    with pytest.raises(ContractError, match="m.onnx: input 'images' is tensor\\(uint8\\) .* needs uint8"):
+        check_signature(ort_style, GOOD_OUT, "m.onnx", exact=True)
+    with pytest.raises(ContractError, match="m.onnx: input 'intrinsics' is float64"):
+        check_signature([GOOD_IN[0], ("intrinsics", "float64", [None, 6, 3, 3]), GOOD_IN[2]], GOOD_OUT, "m.onnx")
+    with pytest.raises(ContractError, match="m.onnx: model has no output 'density'"):
+        check_signature(GOOD_IN, GOOD_OUT[:1], "m.onnx")
+    with pytest.raises(ContractError, match="cam2ego"):
+        check_signature(GOOD_IN[:2] + [("cam2ego", "float32", [None, 5, 4, 4])], GOOD_OUT, "m.onnx")
+    assert contract.INPUT_NAMES == ("images", "intrinsics", "cam2ego")
+    assert [s.onnx_elem_type for s in contract.OUTPUTS] == [2, 1]
+
+
+def test_make_feeds_casts_and_checks_shapes():
+    feeds = make_feeds(np.zeros((1, 6, 9, 16, 3)), np.zeros((1, 6, 3, 3), np.float64), np.zeros((1, 6, 4, 4)))
+    assert [v.dtype for v in feeds.values()] == [np.uint8, np.float32, np.float32]
+    with pytest.raises(ValueError, match="cam2ego"):
+        make_feeds(np.zeros((1, 6, 9, 16, 3)), np.zeros((1, 6, 3, 3)), np.zeros((1, 6, 3, 3)))
+    with pytest.raises(ValueError, match="batch sizes differ"):
+        make_feeds(np.zeros((2, 6, 9, 16, 3)), np.zeros((1, 6, 3, 3)), np.zeros((1, 6, 4, 4)))
+
+
+def _metadata():
+    return {"classes": list(CLASS_NAMES), "free_index": 17, "grid": GRID.to_dict(), "cameras": list(CAMERAS),
+            "class_colors": CLASS_COLORS.astype(int).tolist(), "threshold": 0.3, "input_size": [160, 288],
+            "preset": "tiny", "default_calibration": default_rig(480, 270), "occflownet_version": "0.1.0",
+            "onnx_contract": "v1", "foreign": "plain text"}
+
+
+def test_metadata_round_trip_and_errors():
+    props = contract.encode_metadata(_metadata())
+    props["foreign"] = "not json"                                          # other writers' keys survive as text
+    md = parse_metadata(props, "m.onnx")
+    assert md.cameras == CAMERAS and md.threshold == 0.3 and md.input_size == (160, 288) and md.preset == "tiny"
+    assert md.grid_shape == GRID.shape and md.class_colors.dtype == np.uint8 and md.raw["foreign"] == "not json"
+    assert set(contract.METADATA_KEYS) <= set(props)
+    bad_calib = _metadata()
+    bad_calib["default_calibration"]["cameras"]["CAM_BACK"]["intrinsic"] = [[0, 0, 0], [0, 0, 0], [0, 0, 1]]
+    for meta, message in ((_metadata() | {"onnx_contract": "v2"}, "onnx_contract is 'v2'"),
+                          (_metadata() | {"free_index": 18}, "free_index 18"),
+                          (_metadata() | {"cameras": CAMERAS[:5]}, "cameras must be 6 distinct names"),
+                          (bad_calib, "default_calibration: CAM_BACK intrinsic is singular")):
+        with pytest.raises(ContractError, match=f"m.onnx: invalid model metadata: {message}"):
+            parse_metadata(contract.encode_metadata(meta), "m.onnx")
+    with pytest.raises(ContractError, match="m.onnx: model metadata lacks threshold"):
+        parse_metadata({k: v for k, v in props.items() if k != "threshold"}, "m.onnx")
