@@ -24,9 +24,10 @@ from occflownet.inference_io import create_session, run_session
 from occflownet.model import ModelConfig
 
 # ops kept in float32 in the fp16 variant: index/geometry arithmetic, pooling, resize, fusion
-FP16_KEEP_FP32 = ["Resize", "ScatterND", "Floor", "Where", "Range", "NonZero", "GatherND", "ArgMax", "Sigmoid",
-                  "Softmax", "Div", "Reciprocal", "Min", "Max", "CumSum", "Clip", "GreaterOrEqual", "Less",
-                  "LessOrEqual", "Greater", "Equal", "Cast", "IsNaN", "IsInf", "Expand", "Concat", "Slice"]
+FP16_KEEP_FP32 = ["Resize", "ScatterND", "ScatterElements", "Floor", "Where", "Range", "NonZero", "GatherND",
+                  "ArgMax", "Sigmoid", "Softmax", "Div", "Reciprocal", "Min", "Max", "CumSum", "Clip",
+                  "GreaterOrEqual", "Less", "LessOrEqual", "Greater", "Equal", "Cast", "IsNaN", "IsInf", "Expand",
+                  "Concat", "Slice"]
 
 
 def _with_suffix(path: Path, tag: str) -> Path:

@@ -86,7 +86,7 @@ def test_antialiased_resize_is_the_triangle_filter(h, w, out):
     from occflownet.model.preprocess import antialiased_resize
 
     x = torch.randint(0, 256, (2, h, w, 3), generator=torch.Generator().manual_seed(h + w)).float()
-    got = antialiased_resize(x, out).double().numpy()                             # [N, C, H_out, W_out]
+    got = antialiased_resize(x.permute(0, 3, 1, 2), out).double().numpy()        # [N, C, H_out, W_out]
     want = np.einsum("ih,nhwc,jw->ncij", _triangle_matrix(h, out[0]), x.double().numpy(),
                      _triangle_matrix(w, out[1]), optimize=True)
     assert got.shape == (2, 3, *out)
@@ -101,7 +101,7 @@ def test_antialiased_resize_matches_torch_antialias():
 
     x = torch.randint(0, 256, (6, 445, 800, 3), generator=torch.Generator().manual_seed(0)).float()
     old = F.interpolate(x.permute(0, 3, 1, 2), size=INPUT, mode="bilinear", align_corners=False, antialias=True)
-    assert (antialiased_resize(x, INPUT) - old).abs().max() < 1e-3
+    assert (antialiased_resize(x.permute(0, 3, 1, 2), INPUT) - old).abs().max() < 1e-3
 
 
 def test_preprocessing_exports_without_resize():

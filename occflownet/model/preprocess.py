@@ -112,17 +112,17 @@ def resample_rows(x: torch.Tensor, length_out: int) -> torch.Tensor:
 
 
 def antialiased_resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    """float images channels-last [N, H, W, C] → channels-first [N, C, size[0], size[1]] by the separable triangle
-    filter: rows first, then columns of a transposed copy (each pass gathers whole contiguous rows).
+    """float images channels-first [N, C, H, W] → [N, C, size[0], size[1]] by the separable triangle filter: rows
+    first, then the columns of the transposed (2-D, per channel) result, transposed back; every gather moves whole
+    contiguous rows.
 
-    Equals ``F.interpolate(x.permute(0, 3, 1, 2), size, mode="bilinear", align_corners=False, antialias=True)``
-    up to float32 rounding (≤ 2e-3 on 0..255 images, like torch's own distance from a float64 filter; tested)."""
-    n, height, width, c = x.shape
+    Equals ``F.interpolate(x, size, mode="bilinear", align_corners=False, antialias=True)`` up to float32
+    rounding (≤ 2e-3 on 0..255 images, like torch's own distance from a float64 filter; tested)."""
+    n, c, height, width = x.shape
     out_h, out_w = size
-    x = resample_rows(x.reshape(n, height, width * c), out_h).reshape(n, out_h, width, c)
-    x = x.permute(0, 2, 1, 3).reshape(n, width, out_h * c)                              # columns as rows
-    x = resample_rows(x, out_w).reshape(n, out_w, out_h, c)
-    return x.permute(0, 3, 2, 1)                                                         # [N, C, H_out, W_out]
+    x = resample_rows(x.reshape(n * c, height, width), out_h)                   # [N·C, H_out, W]
+    x = resample_rows(x.transpose(1, 2), out_w)                                 # [N·C, W_out, H_out]
+    return x.transpose(1, 2).reshape(n, c, out_h, out_w)
 
 
 def preprocess_images(images: torch.Tensor, intrinsics: torch.Tensor, input_size: tuple[int, int],
@@ -135,7 +135,7 @@ def preprocess_images(images: torch.Tensor, intrinsics: torch.Tensor, input_size
     rows, cols = crop.shape[2], crop.shape[3]
     torch._check(rows > 0)  # tells torch.export the strided crop is non-empty (it always is)
     torch._check(cols > 0)
-    x = crop.reshape(b * v, rows, cols, 3).to(torch.float32)          # [B*V, rows, cols, 3]
+    x = crop.reshape(b * v, rows, cols, 3).permute(0, 3, 1, 2).to(torch.float32)   # [B*V, 3, rows, cols]
     x = antialiased_resize(x, tuple(input_size))
     mean_t = torch.tensor(mean, dtype=torch.float32, device=images.device).reshape(1, 3, 1, 1)
     inv_std = 1.0 / torch.tensor(std, dtype=torch.float32, device=images.device).reshape(1, 3, 1, 1)
