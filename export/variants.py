@@ -80,7 +80,8 @@ def write_fp16(src: Path, dst: Path) -> Path:
     from onnxruntime.transformers.float16 import DEFAULT_OP_BLOCK_LIST, convert_float_to_float16
 
     proto = onnx.load(str(src))
-    half = convert_float_to_float16(proto, keep_io_types=True, op_block_list=DEFAULT_OP_BLOCK_LIST + FP16_KEEP_FP32)
+    half = convert_float_to_float16(proto, keep_io_types=True, op_block_list=DEFAULT_OP_BLOCK_LIST + FP16_KEEP_FP32,
+                                    node_block_list=activation_matmuls(proto))
     half.ir_version = proto.ir_version
     topological_sort(half.graph)
     del half.graph.value_info[:]          # stale fp32 annotations; the checker re-infers the types
@@ -88,6 +89,14 @@ def write_fp16(src: Path, dst: Path) -> Path:
     validate_proto(half)
     onnx.save(half, str(dst))
     return dst
+
+
+def activation_matmuls(proto: onnx.ModelProto) -> list[str]:
+    """Names of the MatMul nodes with no weight (initializer) input: the in-graph image resampling (banded
+    triangle-filter weights × image windows, values 0..255). Kept in float32 by both variants: fp16 would round
+    the pixel sums to 1/8 of a grey level, int8 would quantise the filter weights and the images."""
+    inits = {i.name for i in proto.graph.initializer}
+    return [n.name for n in proto.graph.node if n.op_type == "MatMul" and not any(i in inits for i in n.input)]
 
 
 class _SyntheticReader:
@@ -118,6 +127,7 @@ def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int 
     try:
         quantize_static(str(src), str(dst), _SyntheticReader(cfg, calibration_samples),
                         quant_format=QuantFormat.QDQ, op_types_to_quantize=["Conv", "MatMul", "Gemm"],
+                        nodes_to_exclude=activation_matmuls(onnx.load(str(src))),
                         per_channel=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         calibrate_method=CalibrationMethod.MinMax)
     finally:
