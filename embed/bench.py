@@ -4,8 +4,8 @@
 
 Both sides: the six JPEGs are read once; each timed run decodes them (C++: libjpeg-turbo into the input buffer;
 Python: OpenCV imdecode + RGB + np.stack, as `occflownet predict`) and runs one inference with the same session
-settings (intra-op threads, spinning off, all graph optimisations). Each round runs Python then C++ (a fresh process,
-after one warm-up run each); p50s per round and the median over rounds are printed with the load average.
+settings (intra-op threads, spinning off, all graph optimisations). Each round runs both sides, alternating which
+goes first (C++ in a fresh process; one warm-up run each); p50s per round and the median over rounds are printed with the load average.
 """
 from __future__ import annotations
 
@@ -68,8 +68,10 @@ def main() -> None:
           f"load average {os.getloadavg()[0]:.2f} at start")
     rows = {"python": [], "c++": []}
     for r in range(a.rounds):
-        rows["python"].append(python_round(a.model, a.images, calib, a.runs, a.threads))
-        rows["c++"].append(cpp_round(a.binary, a.model, a.images, calib, a.runs, a.threads, out))
+        sides = [("python", lambda: python_round(a.model, a.images, calib, a.runs, a.threads)),
+                 ("c++", lambda: cpp_round(a.binary, a.model, a.images, calib, a.runs, a.threads, out))]
+        for side, measure in sides if r % 2 == 0 else sides[::-1]:  # alternate which side goes first
+            rows[side].append(measure())
         print(f"round {r + 1}: python p50 {rows['python'][-1][0]:.1f} / {rows['python'][-1][1]:.1f} ms, "
               f"c++ p50 {rows['c++'][-1][0]:.1f} / {rows['c++'][-1][1]:.1f} ms (inference / decode+inference)")
     out.unlink(missing_ok=True)
