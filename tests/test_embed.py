@@ -223,8 +223,27 @@ def test_c_demo_reads_metadata_and_runs(embed_build, random_model):
     assert "cameras: CAM_FRONT CAM_FRONT_RIGHT CAM_FRONT_LEFT CAM_BACK CAM_BACK_LEFT CAM_BACK_RIGHT" in proc.stdout
     assert "grid: 200 x 200 x 16, free index 17 (free), default image size 480x270" in proc.stdout
     assert "occupied voxels: 0 of 640000" in proc.stdout
+    m = re.search(r"CAM_FRONT intrinsics for 480x270: fx ([\d.]+) fy ([\d.]+) cx ([\d.]+) cy ([\d.]+)", proc.stdout)
+    assert m and [float(v) for v in m.groups()] == pytest.approx([379.8, 379.8, 240.0, 135.0], abs=1e-4)
     bad = run_program(embed_build["c_demo_asan"], REPO / "README.md")
     assert bad.returncode == 1 and "onnxruntime cannot load this model" in bad.stderr
+    assert_no_sanitizer_report(bad)
+
+
+@needs_frame
+def test_c_layer_calibration_from_json(embed_build, random_model):
+    """occflownet_calibration_from_json: the real frame's calibration for 800x450 images, as Python's rule; an
+    aspect ratio it cannot match is an error code with the message."""
+    proc = run_program(embed_build["c_demo_asan"], random_model, FRAME / "calib.json", 800, 450)
+    assert proc.returncode == 0, proc.stderr
+    assert_no_sanitizer_report(proc)
+    K, _ = python_calibration(FRAME / "calib.json", 800, 450)
+    m = re.search(r"CAM_FRONT intrinsics for 800x450: fx ([\d.]+) fy ([\d.]+) cx ([\d.]+) cy ([\d.]+)", proc.stdout)
+    assert m, proc.stdout
+    assert [float(v) for v in m.groups()] == pytest.approx([K[0, 0, 0], K[0, 1, 1], K[0, 0, 2], K[0, 1, 2]], abs=1e-4)
+    bad = run_program(embed_build["c_demo_asan"], random_model, FRAME / "calib.json", 800, 800)
+    assert bad.returncode == 1
+    assert "CAM_FRONT: image is 800x800 but the calibration is for 1600x900" in bad.stderr
     assert_no_sanitizer_report(bad)
 
 
