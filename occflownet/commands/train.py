@@ -36,6 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--free-space", action=argparse.BooleanOptionalAction, default=False,
                    help="also render LiDAR beams that returned nothing; their opacity goes to 0 (beyond the paper)")
     p.add_argument("--free-rays-per-step", type=int, default=2048, help="free-space beams per sample per step")
+    p.add_argument("--free-space-weight", type=float, default=1.0, help="weight of the free-space term")
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--time-limit", type=float, default=0.0, help="stop with a checkpoint after this many seconds")
     p.add_argument("--batch-size", type=int, default=1, help="samples per process per step")
@@ -72,6 +73,7 @@ def config_from_args(args):
         dynamic_filter=args.dynamic_filter, disocclusion=args.disocclusion, loss_weighting=args.loss_weighting,
         depth_loss=args.depth_loss, density_scale=args.density_scale, voxel_mask=args.voxel_mask,
         head_init=args.head_init, free_space=args.free_space, free_rays_per_step=args.free_rays_per_step,
+        free_space_weight=args.free_space_weight,
         max_steps=args.max_steps, time_limit_s=args.time_limit,
         batch_size=args.batch_size, rays_per_step=pick("rays_per_step"), lr=pick("lr"),
         weight_decay=args.weight_decay, warmup_steps=pick("warmup_steps"), ema_decay=pick("ema_decay"),

@@ -33,6 +33,7 @@ class TrainConfig:
     head_init: str = ""              # "" = the preset's; "prior" or "official" (model/config.py HEAD_INITS)
     free_space: bool = False         # also render LiDAR beams without a return; their opacity → 0 (beyond the paper)
     free_rays_per_step: int = 2048   # free-space beams per sample per step (with free_space)
+    free_space_weight: float = 1.0   # weight of the free-space term −log(1 − opacity)
     max_steps: int = 1000
     time_limit_s: float = 0.0        # 0 = no limit; otherwise stop (with a checkpoint) after this many seconds
     batch_size: int = 1              # samples per process per step
@@ -60,8 +61,8 @@ class TrainConfig:
             raise ValueError("flow_mover must be 'idw' or 'nearest'")
         if self.free_space and not self.uses_2d:
             raise ValueError("free_space renders LiDAR beams: it needs supervision '2d' or '2d+3d'")
-        if self.free_rays_per_step < 1:
-            raise ValueError("free_rays_per_step must be >= 1")
+        if self.free_rays_per_step < 1 or self.free_space_weight < 0:
+            raise ValueError("free_rays_per_step must be >= 1 and free_space_weight >= 0")
 
     @property
     def uses_2d(self) -> bool:

@@ -28,7 +28,7 @@ class LossComputer:
         self.render_cfg = render_cfg or RenderConfig(density_scale=cfg.density_scale)
         self.class_weights = class_weights
         self.depth_bins = torch.tensor(model_cfg.depth_bin_centers(), dtype=torch.float32)
-        self.loss_cfg = L.LossConfig(mode=cfg.supervision)
+        self.loss_cfg = L.LossConfig(mode=cfg.supervision, free_space_weight=cfg.free_space_weight)
         if not cfg.depth_loss:  # "semantics only": no rendered-depth and no LiDAR-depth term
             self.loss_cfg = replace(self.loss_cfg, depth_weight=0.0, lidar_depth_weight=0.0)
 
