@@ -69,7 +69,8 @@ def test_a_different_aspect_ratio_is_refused_naming_the_camera():
                                                r"\(aspect ratio 1.000 vs 1.778\)"):
         rescale_intrinsics(K0, (1600, 900), (1000, 1000), camera="CAM_BACK")
     np.testing.assert_array_equal(rescale_intrinsics(K0, None, (1000, 1000)), K0)       # no size: as they come
-    np.testing.assert_array_equal(rescale_intrinsics(K0, (1600, 900), (1605, 900)), scale_intrinsics(K0, 1605 / 1600, 1))
+    np.testing.assert_array_equal(rescale_intrinsics(K0, (1600, 900), (1605, 900)),      # within 1 %: rescaled
+                                  scale_intrinsics(K0, 1605 / 1600, 1))
 
 
 def test_calibration_arrays_for_an_image_size_and_per_camera_sizes():

@@ -107,7 +107,9 @@ def test_antialiased_resize_matches_torch_antialias():
 def test_preprocessing_exports_without_resize():
     """The exported preprocessing is plain Gather/MatMul/elementwise: no Resize (whose antialias attribute OpenVINO
     ignores), and onnxruntime agrees with torch."""
-    import onnx
+    import tempfile
+    from pathlib import Path
+
     import onnxruntime as ort
 
     from export.onnx_export import trace_to_onnx
@@ -120,9 +122,6 @@ def test_preprocessing_exports_without_resize():
     images = torch.randint(0, 256, (1, 6, 450, 800, 3), dtype=torch.uint8, generator=torch.Generator().manual_seed(1))
     K = torch.from_numpy(K)[None]
     h, w = torch.export.Dim("h", min=32, max=4096), torch.export.Dim("w", min=32, max=4096)
-    import tempfile
-    from pathlib import Path
-
     with tempfile.TemporaryDirectory() as tmp:
         proto = trace_to_onnx(Pre(), (images, K), Path(tmp) / "pre.onnx", ["images", "intrinsics"], ["x", "k"],
                               {"images": {2: h, 3: w}, "intrinsics": None})
