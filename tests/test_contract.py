@@ -195,3 +195,20 @@ def test_metadata_round_trip_and_errors():
             parse_metadata(contract.encode_metadata(meta), "m.onnx")
     with pytest.raises(ContractError, match="m.onnx: model metadata lacks threshold"):
         parse_metadata({k: v for k, v in props.items() if k != "threshold"}, "m.onnx")
+
+
+def test_sessions_refuse_a_model_that_breaks_the_contract(tmp_path):
+    """create_session (predict, eval --model, parity, serve) checks signature and metadata, naming the file."""
+    import onnx
+    from onnx import TensorProto, helper
+
+    from occflownet.inference_io import create_session
+
+    graph = helper.make_graph([helper.make_node("Identity", ["images"], ["occupancy"])], "g",
+                              [helper.make_tensor_value_info("images", TensorProto.UINT8, [1, 6, 4, 4, 3])],
+                              [helper.make_tensor_value_info("occupancy", TensorProto.UINT8, [1, 6, 4, 4, 3])])
+    path = tmp_path / "not-v1.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=10), str(path))
+    with pytest.raises(ContractError, match="not-v1.onnx: model has no input 'intrinsics'"):
+        create_session(path)
+    assert create_session(path, check_contract=False).get_inputs()[0].name == "images"
