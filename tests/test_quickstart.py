@@ -16,6 +16,10 @@ def test_quickstart_small(tmp_path, capsys):
     assert result["split"] == "val" and result["samples"] == 3
     assert (out / "model.onnx").is_file() and (out / "run" / "checkpoints" / "last.pt").is_file()
     assert len(list((out / "predictions").glob("*.npz"))) == 3
+    import cv2
+
+    picture = cv2.imread(str(out / "side_by_side.png"))      # ground truth beside the prediction
+    assert picture is not None and picture.shape[1] == 1200 and "side_by_side.png" in printed
     assert sorted(p.name for p in (out / "example").iterdir())[:2] == ["CAM_BACK.jpg", "CAM_BACK_LEFT.jpg"]
     # the printed predict command works on the example it wrote
     assert main(["predict", "--model", str(out / "model.onnx"), "--images", str(out / "example"), "--calib",

@@ -15,12 +15,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int, default=16, help="keyframes per scene")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--train-minutes", type=float, default=7.0, help="training time budget")
-    p.add_argument("--max-steps", type=int, default=300, help="step cap (about the time budget on a 2-core CPU)")
-    p.add_argument("--voxel-mask", action=argparse.BooleanOptionalAction, default=False,
-                   help="3D voxel losses only inside mask_camera (train --voxel-mask)")
-    p.add_argument("--supervision", default="2d+3d", choices=["2d", "3d", "2d+3d"],
-                   help="default 2d+3d (the paper's 'Flow 2D+3D'): within minutes on a CPU only runs with 3D labels "
-                        "predict occupied voxels; 2d alone needs a far longer budget (docs/ablation.md)")
+    p.add_argument("--max-steps", type=int, default=1000, help="step cap (about the time budget on a 2-core CPU)")
+    p.add_argument("--voxel-mask", action=argparse.BooleanOptionalAction, default=True,
+                   help="3D voxel losses only inside mask_camera (train --voxel-mask; default on: the quickest "
+                        "recipe measured, docs/training.md)")
+    p.add_argument("--supervision", default="3d", choices=["2d", "3d", "2d+3d"],
+                   help="default 3d: within minutes on a CPU, 3D labels inside the camera mask give the model "
+                        "closest to the street of the recipes measured; 2d needs a far longer budget "
+                        "(docs/ablation.md, docs/training.md)")
 
 
 def run(args) -> int:
@@ -43,7 +45,8 @@ def run(args) -> int:
     stages += [
         ["prepare", "--dataroot", str(world)],
         ["train", "--preset", "tiny", "--dataroot", str(world), "--out", str(run_dir), "--split", "train",
-         "--supervision", args.supervision, "--flow", "--time-limit", str(args.train_minutes * 60),
+         "--supervision", args.supervision, "--flow" if args.supervision != "3d" else "--no-flow",
+         "--time-limit", str(args.train_minutes * 60),
          "--max-steps", str(args.max_steps), "--resume", "--seed", str(args.seed),
          "--voxel-mask" if args.voxel_mask else "--no-voxel-mask"],
         ["eval", "--checkpoint", str(ckpt), "--dataroot", str(world), "--split", "val",
