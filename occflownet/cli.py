@@ -1,4 +1,4 @@
-"""The ``occflownet`` command line: one sub-command per verb (design notes section 8)."""
+"""The ``occflownet`` command line: one sub-command per verb (docs/contracts.md)."""
 from __future__ import annotations
 
 import argparse

@@ -22,7 +22,7 @@ name            dtype      shape                   meaning
 
 Metadata (``metadata_props``, every value JSON-encoded): see :data:`METADATA_KEYS` and :class:`ModelMetadata`.
 
-Calibration JSON (design notes §3): ``{"cameras": {"CAM_FRONT": {"intrinsic": 3×3, "cam2ego": 4×4,
+Calibration JSON (docs/contracts.md): ``{"cameras": {"CAM_FRONT": {"intrinsic": 3×3, "cam2ego": 4×4,
 ["image_size": [w, h]]}, ...}, ["image_size": [w, h]]}``; other keys are ignored. The intrinsics of a camera are
 for its own ``image_size``, else the top-level one, else (no size given) for the images exactly as they come.
 :func:`validate_calibration` checks it strictly (shapes, finite values, non-singular K with last row [0, 0, 1]

@@ -1,6 +1,6 @@
 """Training losses: rendering (2D), LiDAR depth supervision of the LSS depth distribution, and 3D voxel labels.
 
-Weights and definitions follow the paper and the official OccFlowNet code (design section 5):
+Weights and definitions follow the paper and the official OccFlowNet code (docs/render.md):
 - rendered depth: MSE per ray × ω(label), weight 0.05; rendered semantics: cross-entropy (softmax of the rendered
   logit mixture) per ray × ω(label), weight 1.0; both are the mean over rays of the weighted per-ray terms, as
   mmdet's ``weight_reduce_loss`` does in the official code. ω are the per-class weights from the data index

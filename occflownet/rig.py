@@ -45,7 +45,7 @@ def intrinsic(focal_1600: float, width: int, height: int) -> np.ndarray:
 
 
 def default_rig(width: int = 1600, height: int = 900) -> dict:
-    """The default rig as calibration JSON (design notes section 3), plus its ``image_size`` [width, height]."""
+    """The default rig as calibration JSON (docs/contracts.md), plus its ``image_size`` [width, height]."""
     cams = {}
     for name in CAMERAS:
         pos, yaw, f = _RIG_1600[name]

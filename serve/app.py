@@ -1,6 +1,6 @@
 """The FastAPI app: ``create_app(settings)``; the model is loaded once, at start-up, in the lifespan.
 
-Routes (design notes section 9): ``POST /v1/occupancy``, ``GET /healthz`` (liveness), ``GET /readyz`` (ready after
+Routes (docs/contracts.md, docs/serve.md): ``POST /v1/occupancy``, ``GET /healthz`` (liveness), ``GET /readyz`` (ready after
 the warm-up inference), ``GET /v1/metadata``, ``GET /metrics`` (Prometheus text). Errors are always
 ``{"error": {"code", "message"}}``. Imports neither torch nor anything that imports it.
 

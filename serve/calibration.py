@@ -1,7 +1,7 @@
 """Calibration of a request: the ``calibration`` part parsed, validated and matched to the images' actual sizes.
 
 All the rules are the contract's (:mod:`occflownet.contract`, the same for ``predict``, ``eval --model`` and export
-parity): calibration JSON (design notes section 3), strict validation naming camera and field, and for an image
+parity): calibration JSON (docs/contracts.md), strict validation naming camera and field, and for an image
 whose size differs from the size its intrinsics are for (the camera's own ``image_size``, else the top-level one,
 else the image as sent; the model's default calibration always has one) the pixel-centre rule
 ``f' = f·s, c' = (c + 0.5)·s − 0.5`` when the aspect ratio agrees within 1 %. A different aspect ratio means the

@@ -1,7 +1,7 @@
 """The ONNX model behind the server: an onnxruntime session, its contract-v1 metadata, warm-up and inference.
 
 Everything model-specific the server uses (cameras, classes, grid, colours, default calibration) comes from the
-model file's ``metadata_props`` (JSON values, design notes section 7), never from the training code.
+model file's ``metadata_props`` (JSON values, docs/contracts.md), never from the training code.
 
 Contract v1 (checked at load time by :func:`occflownet.contract.check_session`, the same check as predict's and
 eval's; the session is made by :func:`occflownet.inference_io.create_session`):

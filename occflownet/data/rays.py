@@ -1,4 +1,4 @@
-"""Rendering supervision: camera rays through labelled LiDAR points (design notes section 5).
+"""Rendering supervision: camera rays through labelled LiDAR points (docs/data.md).
 
 For every keyframe each LiDAR point is projected into each of the six cameras; every hit (camera z-depth
 ≥ ``min_depth``, projection inside the image: 0 ≤ u < W, 0 ≤ v < H) whose point lies inside the occupancy grid of

@@ -45,7 +45,7 @@ LOOKUPS = ("auto", "numba", "grid_sample")
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """Ray rendering settings; defaults are the official OccFlowNet values (design section 5)."""
+    """Ray rendering settings; defaults are the official OccFlowNet values (docs/render.md)."""
 
     near: float = 0.05              # metres along the ray
     far: float = 40.0
