@@ -91,10 +91,10 @@ def _write_picture(world, predictions, path):
     from occflownet.inference_io import save_png
 
     index = load_index(world)
-    position = int(index.split_positions("val")[0])
-    with np.load(predictions / f"{index[position].token}.npz") as z:
+    sample = index[int(index.split_positions("val")[0])]
+    with np.load(predictions / f"{sample.token}.npz") as z:
         occupancy = z["occupancy"]
-    return save_png(path, sample_side_by_side(world, position, occupancy))
+    return save_png(path, sample_side_by_side(world, sample, occupancy))
 
 
 def _write_example(world, folder):

@@ -41,9 +41,7 @@ class FreeSpaceConfig:
 def _runs_at_least(missing: np.ndarray, length: int) -> np.ndarray:
     """bool [n] → bool [n]: True where ``missing`` is in a circular run of at least ``length`` True values."""
     n = len(missing)
-    if missing.all():
-        return missing.copy()
-    if length <= 1:
+    if length <= 1 or missing.all():
         return missing.copy()
     start = int(np.flatnonzero(~missing)[0])       # rotate so that the sequence starts on a present bin
     rolled = np.roll(missing, -start)

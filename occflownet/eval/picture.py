@@ -82,16 +82,13 @@ def _legend(width: int) -> np.ndarray:
     return out
 
 
-def sample_side_by_side(dataroot, position: int, prediction: np.ndarray, camera: int = 0,
-                        version: str | None = None) -> np.ndarray:
-    """:func:`side_by_side` of keyframe ``position`` of a prepared nuScenes-format root: ``prediction`` uint8
-    [200, 200, 16] against its Occ3D labels, seen from camera ``camera`` (index in ``config.CAMERAS``)."""
+def sample_side_by_side(dataroot, sample, prediction: np.ndarray, camera: int = 0) -> np.ndarray:
+    """:func:`side_by_side` of a keyframe (``sample``: a SampleRecord of the index of ``dataroot``):
+    ``prediction`` uint8 [200, 200, 16] against its Occ3D labels, seen from camera ``camera`` (index in
+    ``config.CAMERAS``)."""
     from occflownet.config import CAMERAS
-    from occflownet.data.index import load_index
     from occflownet.data.loaders import load_occupancy, load_sample_images
 
-    index = load_index(dataroot, version)
-    sample = index[int(position)]
     images = load_sample_images(dataroot, sample)
     labels = load_occupancy(dataroot, sample.occupancy_path)
     return side_by_side(prediction, labels.semantics, images[camera], sample.intrinsics[camera],

@@ -143,10 +143,9 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
             optical += scale * s * (e1 - e0)
             cdf[m + 1] = 1.0 - math.exp(-optical)
         cdf[n_bins] = 1.0
-        if uniform_mix > 0.0:
-            total = max(cdf[n_bins], 1e-12)
+        if uniform_mix > 0.0:  # both CDFs end at 1: the mixture needs no normalisation
             for m in range(n_bins + 1):
-                cdf[m] = (1.0 - uniform_mix) * cdf[m] / total + uniform_mix * (edges[r, m] - near) / (far - near)
+                cdf[m] = (1.0 - uniform_mix) * cdf[m] + uniform_mix * (edges[r, m] - near) / (far - near)
         # fine draws: invert the piecewise-linear CDF (searchsorted "right" over cdf[:-1], as nerfacc)
         lo, hi = cdf[0], cdf[n_bins]
         step = (hi - lo) / n_fine

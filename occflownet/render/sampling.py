@@ -48,10 +48,9 @@ def cdf_from_sigma(edges: torch.Tensor, sigma: torch.Tensor, cfg) -> torch.Tenso
     tau = cfg.density_scale * sigma * (edges[:, 1:] - edges[:, :-1])
     cdf = 1.0 - torch.exp(-torch.cumsum(tau[:, :-1], dim=-1))
     cdf = torch.cat([cdf.new_zeros(cdf.shape[0], 1), cdf, cdf.new_ones(cdf.shape[0], 1)], dim=-1)
-    if cfg.uniform_mix > 0:
-        normalised = cdf / cdf[:, -1:].clamp(min=1e-12)
+    if cfg.uniform_mix > 0:  # both CDFs end at 1, so the mixture is a CDF too
         uniform = (edges - cfg.near) / (cfg.far - cfg.near)
-        cdf = (1.0 - cfg.uniform_mix) * normalised + cfg.uniform_mix * uniform
+        cdf = (1.0 - cfg.uniform_mix) * cdf + cfg.uniform_mix * uniform
     return cdf
 
 
