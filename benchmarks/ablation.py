@@ -94,7 +94,7 @@ def density_stats(predictions: Path, tau: float = 0.35) -> dict:
     scores 0 has learned no geometry or only not yet crossed τ."""
     import numpy as np
 
-    from occflownet.config import FREE
+    from occflownet.occ3d import FREE
 
     files = sorted(predictions.glob("*.npz"))
     densities, occupied = [], 0

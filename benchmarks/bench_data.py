@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from occflownet.config import STATIC_CLASSES
+from occflownet.occ3d import STATIC_CLASSES
 from occflownet.data import load_index
 from occflownet.data.loaders import load_occupancy
 from occflownet.data.rays import RayBuilder, RayConfig, endpoint_classes

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from occflownet.config import GRID, NUM_CLASSES
+from occflownet.occ3d import GRID, NUM_CLASSES
 from occflownet.data.flow import box_flows, flow_moves, save_flow_record, save_flow_records
 from occflownet.geometry import make_transform, matrix_to_quaternion, yaw_to_quaternion
-from occflownet.render.box_voxels import voxels_in_box
+from occflownet.data.box_voxels import voxels_in_box
 from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
 
 KINDS = [(4, [1.9, 4.6, 1.7])] * 14 + [(7, [0.7, 0.8, 1.8])] * 3 + [(10, [2.6, 8.0, 3.2])] * 2 + [(3, [2.9, 11.5, 3.5])]

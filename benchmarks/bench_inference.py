@@ -30,14 +30,16 @@ SPINNING = False  # onnxruntime worker threads busy-wait (--ort-spinning) or sle
 
 
 def load_inputs():
-    from occflownet.inference_io import calibration_for_images, load_calibration, load_image_folder
-    from occflownet.rig import calibration_arrays, default_rig
+    from occflownet.contract import calibration_arrays, load_calibration
+    from occflownet.predict import load_image_folder
+    from occflownet.contract import calibration_arrays
+    from occflownet.rig import default_rig
 
     if (FRAME / "calib.json").is_file():
         t = time.perf_counter()
         images = load_image_folder(FRAME)
         decode_ms = (time.perf_counter() - t) * 1000
-        K, T = calibration_for_images(load_calibration(FRAME / "calib.json"), 1600, 900)
+        K, T = calibration_arrays(load_calibration(FRAME / "calib.json"), 1600, 900)
         return images, K, T, decode_ms, "real nuScenes frame"
     K, T = calibration_arrays(default_rig(1600, 900))
     images = np.random.default_rng(0).integers(0, 256, (6, 900, 1600, 3), dtype=np.uint8)
@@ -66,9 +68,9 @@ def model_flops(model, args) -> float:
 
 
 def bench_preset(name: str, runs: int, occupied: float, images, K, T, workdir: Path, variants: bool) -> dict:
-    from export.onnx_export import export_model
-    from export.parity import ParitySample
-    from occflownet.inference_io import create_session, run_session
+    from occflownet.export.onnx_export import export_model
+    from occflownet.export.parity import ParitySample
+    from occflownet.contract import create_session, run_session
     from occflownet.model import create_model, get_preset
 
     model = create_model(get_preset(name), seed=0).eval()
@@ -95,8 +97,8 @@ def bench_preset(name: str, runs: int, occupied: float, images, K, T, workdir: P
         occ, dens = run_session(session, images, K, T)
     extra = {}
     if variants:
-        from export.onnx_export import agreement
-        from export.variants import write_fp16, write_int8
+        from occflownet.export.onnx_export import agreement
+        from occflownet.export.variants import write_fp16, write_int8
 
         for tag, path_v in (("fp16", write_fp16(path, workdir / f"{name}.fp16.onnx")),
                             ("int8", write_int8(path, workdir / f"{name}.int8.onnx", model.cfg))):

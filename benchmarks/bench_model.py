@@ -26,7 +26,8 @@ sys.path.insert(0, str(ROOT))
 def _inputs(width: int, height: int, batch: int = 1):
     import torch
 
-    from occflownet.rig import calibration_arrays, default_rig
+    from occflownet.contract import calibration_arrays
+    from occflownet.rig import default_rig
 
     K, T = calibration_arrays(default_rig(width, height))
     g = torch.Generator().manual_seed(0)

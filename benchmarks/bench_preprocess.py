@@ -30,9 +30,9 @@ def _graphs(tmp: Path, images: np.ndarray, K: np.ndarray) -> dict[str, Path]:
     import torch
     import torch.nn.functional as F
 
-    from export.onnx_export import trace_to_onnx
+    from occflownet.export.onnx_export import trace_to_onnx
     from occflownet.model import preprocess
-    from occflownet.model.config import IMAGENET_MEAN, IMAGENET_STD
+    from occflownet.model.presets import IMAGENET_MEAN, IMAGENET_STD
 
     class Pre(torch.nn.Module):
         def __init__(self, fused: bool):
@@ -93,7 +93,7 @@ def main() -> int:
 
     torch.set_num_threads(args.threads)
     if (FRAME / "CAM_FRONT.jpg").is_file():
-        from occflownet.inference_io import load_image_folder
+        from occflownet.predict import load_image_folder
 
         full = load_image_folder(FRAME)[None]
         source = "real frame"

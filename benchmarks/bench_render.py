@@ -29,7 +29,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from occflownet.config import GRID, NUM_CLASSES
+from occflownet.occ3d import GRID, NUM_CLASSES
 from occflownet.render.sampling import importance_sample, intervals_from_samples, uniform_jittered_edges
 from occflownet.render.volume_render import RenderConfig, render_rays, weights_from_density
 

@@ -34,7 +34,7 @@ REPO = Path(__file__).resolve().parents[1]
 FRAME = REPO.parent / "shared" / "data" / "nuscenes-frame"
 sys.path.insert(0, str(REPO))
 
-from occflownet.config import CAMERAS  # noqa: E402
+from occflownet.occ3d import CAMERAS  # noqa: E402
 
 
 def free_port() -> int:
@@ -82,9 +82,9 @@ class Direct:
     """The same work without HTTP: decode the six JPEGs, session.run on the decoded arrays (this process)."""
 
     def __init__(self, model: Path, threads: int):
-        from serve.calibration import calibration_for_sizes
-        from serve.model_runtime import ModelRuntime
-        from serve.settings import ServeSettings
+        from occflownet.serve.calibration import calibration_for_sizes
+        from occflownet.serve.model_runtime import ModelRuntime
+        from occflownet.serve.settings import ServeSettings
 
         self.jpegs = {cam: (FRAME / f"{cam}.jpg").read_bytes() for cam in CAMERAS}
         self.runtime = ModelRuntime.load(model, ServeSettings(intra_op_threads=threads))
@@ -96,7 +96,7 @@ class Direct:
             self.infer()
 
     def decode(self):
-        from serve.decode import decode_image
+        from occflownet.serve.decode import decode_image
         return [decode_image(cam, self.jpegs[cam], 1 << 30) for cam in CAMERAS]
 
     def infer(self):
@@ -207,8 +207,8 @@ def main() -> int:
     if not FRAME.is_dir():
         print(f"real frame not found at {FRAME}", file=sys.stderr)
         return 2
-    from serve.malloc import cap_malloc_arenas
-    from serve.settings import available_cores
+    from occflownet.serve.malloc import cap_malloc_arenas
+    from occflownet.serve.settings import available_cores
 
     cap_malloc_arenas()  # as the server does
     threads = args.threads or available_cores()

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from occflownet.config import FREE
+from occflownet.occ3d import FREE
 from occflownet.synth.camera import render_camera
 from occflownet.synth.frame import SensorRig, camera_mask, lidar_mask
 from occflownet.synth.generate import generate

@@ -29,7 +29,7 @@ def one(dataroot: str, name: str, steps: int, rays: int) -> dict:
     from occflownet.data.flow import flow_path, load_flow_records
     from occflownet.data.index import load_index
     from occflownet.model import create_model, get_preset
-    from occflownet.train.config import TrainConfig
+    from occflownet.train.recipe import TrainConfig
     from occflownet.train.dataset import TrainingSamples, collate
     from occflownet.train.step import LossComputer
 

@@ -14,9 +14,9 @@ import argparse
 import numpy as np
 import torch
 
-from occflownet.config import DYNAMIC_FILTER_CLASSES
+from occflownet.occ3d import DYNAMIC_FILTER_CLASSES
 from occflownet.data.loaders import load_occupancy, load_sample_images
-from occflownet.evaluate import select_samples
+from occflownet.eval.evaluate import select_samples
 from occflownet.model.checkpoint import load_checkpoint
 from occflownet.render.disocclusion import dynamic_mask
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.config import CLASS_NAMES, GRID, map_lidarseg
+from occflownet.occ3d import CLASS_NAMES, GRID, map_lidarseg
 from occflownet.geometry import make_transform, transform_points
 from occflownet.synth.camera import cast_rays
 from occflownet.synth.frame import SensorRig, render_keyframe

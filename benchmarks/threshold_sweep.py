@@ -22,9 +22,9 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=2)
     args = ap.parse_args()
 
-    from occflownet.config import FREE
+    from occflownet.occ3d import FREE
     from occflownet.data.loaders import load_occupancy, load_sample_images
-    from occflownet.evaluate import checkpoint_predictor, select_samples
+    from occflownet.eval.evaluate import checkpoint_predictor, select_samples
 
     samples = select_samples(args.dataroot, split=args.split)
     predict = checkpoint_predictor(args.checkpoint)

@@ -55,12 +55,12 @@ def expected_png(reference: np.ndarray, model: Path) -> np.ndarray:
     """The top-down picture serve/encode.py draws, from the reference grid and the model's own metadata."""
     import onnxruntime as ort
 
-    from serve.encode import top_down_rgb
+    from occflownet.pictures import top_down
 
     meta = ort.InferenceSession(str(model), providers=["CPUExecutionProvider"]).get_modelmeta()
     props = meta.custom_metadata_map
     colors = np.asarray(json.loads(props["class_colors"]), dtype=np.uint8)
-    return top_down_rgb(reference, colors, int(json.loads(props["free_index"])))
+    return top_down(reference, colors, int(json.loads(props["free_index"])))
 
 
 def post(client: httpx.Client, frame: Path, accept: str) -> httpx.Response:

@@ -23,14 +23,14 @@ FRAME = REPO.parent / "shared" / "data" / "nuscenes-frame"
 
 
 def python_round(model: Path, images_dir: Path, calib: Path, runs: int, threads: int) -> tuple[float, float]:
-    from occflownet.inference_io import (calibration_for_images, create_session, decode_image, find_camera_images,
-                                         load_calibration, run_session)
+    from occflownet.contract import calibration_arrays, create_session, load_calibration, run_session
+    from occflownet.predict import decode_image, find_camera_images
 
     session = create_session(model, threads=threads)
     blobs = [(p.read_bytes(), str(p)) for p in find_camera_images(images_dir).values()]
     decode = lambda: np.stack([decode_image(b, n) for b, n in blobs])  # noqa: E731
     images = decode()
-    K, T = calibration_for_images(load_calibration(calib), images.shape[2], images.shape[1])
+    K, T = calibration_arrays(load_calibration(calib), images.shape[2], images.shape[1])
     run_session(session, images, K, T)  # warm-up
     total, infer = [], []
     for _ in range(runs):

@@ -31,12 +31,12 @@ import onnx
 import torch
 
 from occflownet import __version__, contract
-from occflownet.config import CAMERAS, CLASS_COLORS, CLASS_NAMES, FREE, GRID
+from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, FREE, GRID
 from occflownet.contract import CONTRACT_VERSION as CONTRACT
 from occflownet.contract import INPUT_NAMES, OUTPUT_NAMES, calibration_arrays
 from occflownet.model import InferenceGraph, ModelConfig, OccupancyModel
 
-from export.parity import ParityCase, ParitySample, check_parity, default_parity_samples
+from occflownet.export.parity import ParityCase, ParitySample, check_parity, default_parity_samples
 
 OPSET = 18
 MAX_IR_VERSION = 10  # onnxruntime 1.31 reads IR <= 13; opset 18 needs IR >= 8

@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from occflownet.config import CAMERAS
+from occflownet.occ3d import CAMERAS
 from occflownet.contract import calibration_arrays, load_calibration
 from occflownet.geometry import rotation_z
-from occflownet.inference_io import create_session, load_image_folder, run_session
+from occflownet.contract import create_session, run_session
+from occflownet.predict import load_image_folder
 from occflownet.model import ModelConfig, OccupancyModel
 from occflownet.rig import default_rig
 

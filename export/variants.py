@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from export.onnx_export import ExportError, agreement, validate_proto
-from export.parity import default_parity_samples, frame_sample
-from occflownet.inference_io import create_session, run_session
+from occflownet.export.onnx_export import ExportError, agreement, validate_proto
+from occflownet.export.parity import default_parity_samples, frame_sample
+from occflownet.contract import create_session, run_session
 from occflownet.model import ModelConfig
 
 # ops kept in float32 in the fp16 variant: index/geometry arithmetic, pooling, resize, fusion

@@ -10,8 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from occflownet import contract
-from occflownet.config import CAMERAS
+from occflownet.occ3d import CAMERAS
 
 # name: (position in the ego frame [m], yaw of the optical axis about +z [deg], focal length at 1600 px width)
 _RIG_1600 = {
@@ -51,13 +50,3 @@ def default_rig(width: int = 1600, height: int = 900) -> dict:
         pos, yaw, f = _RIG_1600[name]
         cams[name] = {"intrinsic": intrinsic(f, width, height).tolist(), "cam2ego": cam2ego(pos, yaw).tolist()}
     return {"cameras": cams, "image_size": [width, height]}
-
-
-def calibration_arrays(calib: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Calibration JSON → (intrinsics float32 [6, 3, 3], cam2ego float32 [6, 4, 4]) in camera order, as stated.
-
-    The contract's strict check (:func:`occflownet.contract.validate_calibration`): raises
-    ``MissingCalibrationField`` (a KeyError and a ValueError) naming a missing camera or field, ``CalibrationError``
-    (a ValueError) for wrong shapes, non-finite values, a singular K, bad last rows or a non-rotation.
-    """
-    return contract.calibration_arrays(calib)

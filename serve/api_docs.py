@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, Field
 
-from occflownet.config import CAMERAS
+from occflownet.occ3d import CAMERAS
 
 
 class ErrorBody(BaseModel):

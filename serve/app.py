@@ -26,19 +26,19 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import JSONResponse, Response
 
 from occflownet import __version__
-from serve import api_docs
-from serve.calibration import CalibrationError, calibration_for_sizes, parse_calibration
-from serve.decode import ImageError, check_header, common_size, decode_image, intrinsics_for_size
-from serve.encode import FORMATS, NotAcceptable, encode, negotiate
-from serve.errors import CODES, ApiError, error_response
-from serve.form import read_parts
-from serve.limits import BodySizeLimitMiddleware, InferenceGate, Saturated
-from serve.malloc import cap_malloc_arenas
-from serve.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
-from serve.metrics import Metrics
-from serve.middleware import ApiKeyMiddleware, MetricsMiddleware
-from serve.model_runtime import ModelLoadError, ModelRuntime
-from serve.settings import MAX_CALIBRATION_BYTES, ServeSettings
+from occflownet.serve import api_docs
+from occflownet.serve.calibration import CalibrationError, calibration_for_sizes, parse_calibration
+from occflownet.serve.decode import ImageError, check_header, common_size, decode_image, intrinsics_for_size
+from occflownet.serve.encode import FORMATS, NotAcceptable, encode, negotiate
+from occflownet.serve.errors import CODES, ApiError, error_response
+from occflownet.serve.form import read_parts
+from occflownet.serve.limits import BodySizeLimitMiddleware, InferenceGate, Saturated
+from occflownet.serve.malloc import cap_malloc_arenas
+from occflownet.serve.metrics import CONTENT_TYPE as METRICS_CONTENT_TYPE
+from occflownet.serve.metrics import Metrics
+from occflownet.serve.middleware import ApiKeyMiddleware, MetricsMiddleware
+from occflownet.serve.model_runtime import ModelLoadError, ModelRuntime
+from occflownet.serve.settings import MAX_CALIBRATION_BYTES, ServeSettings
 
 log = logging.getLogger("occflownet.serve")
 

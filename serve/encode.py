@@ -18,8 +18,9 @@ import io
 import json
 import time
 
-import cv2
 import numpy as np
+
+from occflownet import pictures
 
 JSON = "application/json"
 OCTET = "application/octet-stream"
@@ -99,27 +100,10 @@ def encode_npy(occupancy: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def top_down_rgb(occupancy: np.ndarray, colors: np.ndarray, free_index: int) -> np.ndarray:
-    """occupancy [X, Y, Z] → RGB uint8 [X·s, Y·s, 3]: colour of each column's highest non-free voxel; image rows
-    run from +x (top) to -x, columns from +y (left) to -y; ego marked black at the centre."""
-    X, Y, Z = occupancy.shape
-    occupied = occupancy != free_index
-    top_z = Z - 1 - np.argmax(occupied[:, :, ::-1], axis=2)           # highest occupied z per column
-    top = np.take_along_axis(occupancy, top_z[..., None], axis=2)[..., 0]
-    top = np.where(occupied.any(axis=2), top, free_index)
-    rgb = colors[top][::-1, ::-1]                                      # rows: +x first; cols: +y first
-    rgb = np.repeat(np.repeat(rgb, PNG_SCALE, axis=0), PNG_SCALE, axis=1)
-    cx, cy = rgb.shape[0] // 2, rgb.shape[1] // 2
-    rgb[cx - PNG_SCALE:cx + PNG_SCALE, cy - PNG_SCALE:cy + PNG_SCALE] = 0
-    return np.ascontiguousarray(rgb)
-
-
 def encode_png(occupancy: np.ndarray, metadata) -> bytes:
-    rgb = top_down_rgb(occupancy, metadata.class_colors, metadata.free_index)
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    if not ok:  # pragma: no cover - imencode of a plain uint8 image does not fail
-        raise RuntimeError("PNG encoding failed")
-    return buf.tobytes()
+    """The ``image/png`` body: :func:`occflownet.pictures.top_down` in the model's own class colours."""
+    return pictures.encode_png(pictures.top_down(occupancy, metadata.class_colors, metadata.free_index,
+                                                 scale=PNG_SCALE))
 
 
 def encode(media_type: str, occupancy: np.ndarray, metadata, timings_ms: dict) -> tuple[bytes, dict[str, str]]:

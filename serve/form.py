@@ -13,8 +13,8 @@ from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect
 
-from serve.errors import ApiError
-from serve.limits import BodyTooLarge
+from occflownet.serve.errors import ApiError
+from occflownet.serve.limits import BodyTooLarge
 
 
 @dataclass

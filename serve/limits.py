@@ -17,7 +17,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 
-from serve.errors import error_response
+from occflownet.serve.errors import error_response
 
 
 class BodyTooLarge(Exception):

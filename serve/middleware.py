@@ -8,8 +8,8 @@ from __future__ import annotations
 import hmac
 import time
 
-from serve.errors import error_response
-from serve.metrics import Metrics
+from occflownet.serve.errors import error_response
+from occflownet.serve.metrics import Metrics
 
 PUBLIC_PATHS = ("/healthz", "/readyz")
 ROUTES = ("/healthz", "/readyz", "/metrics", "/v1/metadata", "/v1/occupancy", "/docs", "/redoc", "/openapi.json")

@@ -4,7 +4,7 @@ Everything model-specific the server uses (cameras, classes, grid, colours, defa
 model file's ``metadata_props`` (JSON values, docs/contracts.md), never from the training code.
 
 Contract v1 (checked at load time by :func:`occflownet.contract.check_session`, the same check as predict's and
-eval's; the session is made by :func:`occflownet.inference_io.create_session`):
+eval's; the session is made by :func:`occflownet.contract.create_session`):
 - inputs  ``images`` uint8 [B, 6, H, W, 3] RGB, ``intrinsics`` float32 [B, 6, 3, 3] (for that H×W),
   ``cam2ego`` float32 [B, 6, 4, 4] (OpenCV camera frame → ego frame);
 - outputs ``occupancy`` uint8 [B, X, Y, Z] (classes, ``free_index`` = free), ``density`` float32 [B, X, Y, Z].
@@ -20,9 +20,9 @@ import numpy as np
 
 from occflownet.contract import ContractError, ModelMetadata, check_session, make_feeds
 from occflownet.contract import parse_metadata as contract_parse_metadata
-from serve.calibration import calibration_for_sizes
-from serve.decode import intrinsics_for_size
-from serve.settings import ServeSettings
+from occflownet.serve.calibration import calibration_for_sizes
+from occflownet.serve.decode import intrinsics_for_size
+from occflownet.serve.settings import ServeSettings
 
 __all__ = ["ModelLoadError", "ModelMetadata", "ModelRuntime", "parse_metadata"]
 
@@ -63,7 +63,7 @@ class ModelRuntime:
             raise ModelLoadError("no model given: pass --model FILE or set OCCFLOWNET_MODEL")
         if not path.is_file():
             raise ModelLoadError(f"model file not found: {path}")
-        from occflownet.inference_io import create_session
+        from occflownet.contract import create_session
 
         settings = settings.resolved()
         try:

@@ -37,7 +37,7 @@ def workdir() -> Path:
 @functools.lru_cache(maxsize=None)
 def exported_tiny():
     """(onnx path, ExportResult, model) of a random-init tiny (seed SEED), parity-checked incl. the real frame."""
-    from export.onnx_export import export_model
+    from occflownet.export.onnx_export import export_model
     from occflownet.model import create_model, get_preset
 
     model = create_model(get_preset("tiny"), seed=SEED).eval()
@@ -70,7 +70,7 @@ def trained_tiny_checkpoint() -> Path:
 def exported_trained_tiny():
     """(onnx path, ExportResult, model) of ``trained_tiny_checkpoint()`` exported with the parity check (incl. the
     real frame when present): the model whose grid has occupied voxels, for runtime and path comparisons."""
-    from export.onnx_export import export_model
+    from occflownet.export.onnx_export import export_model
     from occflownet.model import load_checkpoint
 
     model, cfg, _ = load_checkpoint(trained_tiny_checkpoint())

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from occflownet.config import CAMERAS, LIDAR
+from occflownet.occ3d import CAMERAS, LIDAR
 from occflownet.geometry import invert, make_transform, matrix_to_quaternion, transform_points, yaw_to_quaternion
 from occflownet.rig import default_rig
 
@@ -249,7 +249,7 @@ def _quat(T) -> list:
 def visible_hits(fx: Fixture, scene: int, k: int) -> np.ndarray:
     """int [N]: for each true point of keyframe k (``points_global`` order), in how many camera images it falls
     while inside the grid of keyframe k's ego frame; computed from the fixture's own poses, not the reader's."""
-    from occflownet.config import GRID
+    from occflownet.occ3d import GRID
 
     pts, _ = fx.points_global(scene, k)
     lidar_us = fx.lidar_time(scene, k)

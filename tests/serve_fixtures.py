@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from occflownet import __version__
-from occflownet.config import CAMERAS, CLASS_COLORS, CLASS_NAMES, FREE, GRID
+from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, FREE, GRID
 from occflownet.rig import default_rig
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from occflownet import contract
-from occflownet.config import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
+from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
 from occflownet.contract import (CalibrationError, ContractError, MissingCalibrationField, calibration_arrays,
                                  check_signature, make_feeds, parse_metadata, rescale_intrinsics, scale_intrinsics,
                                  validate_calibration)
@@ -15,7 +15,7 @@ from occflownet.rig import default_rig
 
 
 def test_importing_the_contract_pulls_in_neither_torch_nor_onnx_nor_onnxruntime():
-    code = ("import sys, occflownet.contract, occflownet.inference_io; "
+    code = ("import sys, occflownet.contract, occflownet.predict, occflownet.pictures; "
             "bad = [m for m in ('torch', 'onnx', 'onnxruntime') if m in sys.modules]; assert not bad, bad")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
@@ -202,7 +202,7 @@ def test_sessions_refuse_a_model_that_breaks_the_contract(tmp_path):
     import onnx
     from onnx import TensorProto, helper
 
-    from occflownet.inference_io import create_session
+    from occflownet.contract import create_session
 
     graph = helper.make_graph([helper.make_node("Identity", ["images"], ["occupancy"])], "g",
                               [helper.make_tensor_value_info("images", TensorProto.UINT8, [1, 6, 4, 4, 3])],

@@ -47,7 +47,7 @@ def test_wrap_around_run_counts_once():
 
 
 def test_synthetic_free_beams_cross_no_labelled_surface(prepared_synth_root):
-    from occflownet.config import FREE, NUM_CLASSES
+    from occflownet.occ3d import FREE, NUM_CLASSES
     from occflownet.data.index import load_index
     from occflownet.data.loaders import load_occupancy
     from occflownet.data.rays import RayBuilder, RayConfig

@@ -7,7 +7,7 @@ import pytest
 from nuscenes_fixture import (CAMERA_DELAY_US, LIDAR2EGO, MOVERS, SCENES, VERSION, ego_pose, fixture_world,  # noqa: F401
                               mover_box, write_fixture)
 
-from occflownet.config import CAMERAS, category_to_occ3d
+from occflownet.occ3d import CAMERAS, category_to_occ3d
 from occflownet.data.builder import _splits, build_index
 from occflownet.data.index import FORMAT_VERSION, index_dir, load_index, save_index
 from occflownet.data.tables import DatasetError

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from nuscenes_fixture import fixture_world  # noqa: F401
 
-from occflownet.config import CAMERAS, GRID
+from occflownet.occ3d import CAMERAS, GRID
 from occflownet.data.builder import build_index
 from occflownet.data.loaders import (load_image, load_lidar, load_lidarseg, load_occupancy, load_sample_images)
 from occflownet.data.rays import project_points
 from occflownet.data.tables import DatasetError
 from occflownet.geometry import invert, transform_points
-from occflownet.rig import calibration_arrays
+from occflownet.contract import calibration_arrays
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 OCC3D = SHARED / "occ3d-sample" / "labels.npz"

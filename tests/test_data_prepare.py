@@ -6,7 +6,7 @@ import pytest
 from nuscenes_fixture import SCENES, write_fixture, visible_hits
 
 from occflownet.cli import main
-from occflownet.config import NUM_CLASSES, map_lidarseg
+from occflownet.occ3d import NUM_CLASSES, map_lidarseg
 from occflownet.data.class_weights import ClassStats, class_weights
 from occflownet.data.index import index_dir, load_index
 

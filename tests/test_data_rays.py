@@ -5,7 +5,7 @@ from nuscenes_fixture import (EGO_BODY_POINTS, MOVERS, ego_pose, fixture_world, 
                               visible_hits)
 from scipy.spatial import cKDTree
 
-from occflownet.config import DYNAMIC_FILTER_CLASSES, GRID, map_lidarseg
+from occflownet.occ3d import DYNAMIC_FILTER_CLASSES, GRID, map_lidarseg
 from occflownet.data.builder import build_index
 from occflownet.data.rays import (RayBatch, RayBuilder, RayConfig, pixel_rounding_bound, project_points,
                                   sample_rays)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from occflownet.cli import main
-from occflownet.config import STATIC_CLASSES
+from occflownet.occ3d import STATIC_CLASSES
 from occflownet.data.builder import build_index
 from occflownet.data.index import load_index
 from occflownet.data.loaders import load_occupancy, load_sample_images

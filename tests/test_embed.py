@@ -47,7 +47,7 @@ def random_model() -> Path:
 @pytest.fixture(scope="session")
 def trained_model() -> Path:
     """The briefly trained tiny checkpoint (3D labels, ~2 % occupied voxels on the real frame), exported."""
-    from export.onnx_export import export_model
+    from occflownet.export.onnx_export import export_model
     from occflownet.model import load_checkpoint
 
     out = workdir() / "trained-tiny.onnx"
@@ -81,20 +81,21 @@ def assert_no_sanitizer_report(proc: subprocess.CompletedProcess) -> None:
 def python_calibration(calib_path: Path, width: int, height: int):
     """(intrinsics float32 [6, 3, 3], cam2ego [6, 4, 4]) by the Python rule in force, imported when called:
     ``occflownet.contract.calibration_arrays`` (the torch-free contract module) where it exists, else
-    ``occflownet.inference_io.calibration_for_images``."""
+    ``occflownet.contract.calibration_arrays``."""
     calib = json.loads(Path(calib_path).read_text())
     try:
         from occflownet.contract import calibration_arrays
     except ImportError:
-        from occflownet.inference_io import calibration_for_images
+        from occflownet.contract import calibration_arrays
 
-        return calibration_for_images(calib, width, height)
+        return calibration_arrays(calib, width, height)
     return calibration_arrays(calib, width, height)
 
 
 def python_reference(model: Path, folder: Path, calib_path: Path):
     """What Python onnxruntime gives on ``folder``: (images, intrinsics, occupancy, density)."""
-    from occflownet.inference_io import create_session, load_image_folder, run_session
+    from occflownet.contract import create_session, run_session
+    from occflownet.predict import load_image_folder
 
     images = load_image_folder(folder)
     K, T = python_calibration(calib_path, images.shape[2], images.shape[1])
@@ -156,7 +157,7 @@ def test_decoded_pixels_and_intrinsics_equal_python(embed_build, random_model, t
     """libjpeg-turbo here and OpenCV's decoder in Python give the same RGB bytes for the real frame, and the
     calibration gives the same float32 intrinsics."""
     _, got = cpp_run(embed_build["run"], random_model, FRAME, FRAME / "calib.json", tmp_path)
-    from occflownet.inference_io import load_image_folder
+    from occflownet.predict import load_image_folder
 
     images = load_image_folder(FRAME)
     assert got["images"].shape == images.shape == (6, 900, 1600, 3)
@@ -205,9 +206,9 @@ def test_resized_png_frame_rescales_intrinsics_like_python(embed_build, trained_
 @needs_frame
 def test_default_calibration_when_no_calib_given(embed_build, random_model, tmp_path):
     """Without --calib the model's default calibration (480x270 rig) is rescaled to the 1600x900 images."""
-    from occflownet.inference_io import create_session, read_metadata
+    from occflownet.contract import create_session, decode_metadata
 
-    meta = read_metadata(create_session(random_model))
+    meta = decode_metadata(create_session(random_model).get_modelmeta().custom_metadata_map)
     _, got = cpp_run(embed_build["run"], random_model, FRAME, None, tmp_path)
     calib_file = tmp_path / "default.json"
     calib_file.write_text(json.dumps(meta["default_calibration"]))

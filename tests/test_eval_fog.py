@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from occflownet.config import FREE, GRID
+from occflownet.occ3d import FREE, GRID
 from occflownet.eval.fog import FogMetric, crossed_voxels
 
 

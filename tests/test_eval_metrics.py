@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from occflownet.config import CLASS_NAMES, DYNAMIC_CLASSES, STATIC_CLASSES
+from occflownet.occ3d import CLASS_NAMES, DYNAMIC_CLASSES, STATIC_CLASSES
 from occflownet.eval import OccupancyMetric, confusion_matrix, iou_from_confusion, to_json_ready
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"

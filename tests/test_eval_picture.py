@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from occflownet.config import CLASS_COLORS, FREE, GRID
+from occflownet.occ3d import CLASS_COLORS, FREE, GRID
 from occflownet.eval.picture import camera_view, side_by_side
 
 

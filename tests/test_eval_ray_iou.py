@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from occflownet.config import GRID, Grid
+from occflownet.occ3d import GRID, Grid
 from occflownet.eval import (RayIoUMetric, first_hits, lidar_ray_directions, ray_iou, scene_ray_origins,
                              to_json_ready)
 from occflownet.eval.ray_iou import _cast, _padded_codes, _reference_rays

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from occflownet.config import CLASS_NAMES
+from occflownet.occ3d import CLASS_NAMES
 from occflownet.eval import OccupancyMetric, RayIoUMetric, dumps_json, format_table, to_json_ready
 
 GT = np.array([4, 4, 4, 11, 11, 17, 17, 0], dtype=np.uint8).reshape(2, 2, 2)

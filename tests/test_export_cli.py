@@ -6,10 +6,10 @@ import onnx
 import pytest
 
 from exported_models import SEED, exported_tiny
-from export import onnx_export
-from export.variants import write_variants
+from occflownet.export import onnx_export
+from occflownet.export.variants import write_variants
 from occflownet.cli import main
-from occflownet.inference_io import create_session, read_metadata
+from occflownet.contract import create_session, decode_metadata
 
 
 @pytest.fixture()
@@ -29,7 +29,7 @@ def test_export_from_checkpoint_and_from_seed(reuse_trace, tmp_path, capsys):
     assert main(["export", "--preset", "tiny", "--random-init", "--seed", str(SEED),
                  "--out", str(tmp_path / "b.onnx")]) == 0
     assert "parity" in capsys.readouterr().out
-    meta = read_metadata(create_session(tmp_path / "a.onnx"))
+    meta = decode_metadata(create_session(tmp_path / "a.onnx").get_modelmeta().custom_metadata_map)
     assert meta["preset"] == "tiny" and meta["onnx_contract"] == "v1"
 
 

@@ -7,12 +7,13 @@ import pytest
 import torch
 
 from exported_models import FRAME, exported_tiny, frame_available
-from export import onnx_export, parity
-from export.parity import check_parity, compare, default_parity_samples, frame_sample
+from occflownet.export import onnx_export, parity
+from occflownet.export.parity import check_parity, compare, default_parity_samples, frame_sample
 from occflownet import __version__
-from occflownet.config import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
-from occflownet.inference_io import METADATA_KEYS, create_session, read_metadata, run_session
-from occflownet.rig import calibration_arrays, default_rig
+from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
+from occflownet.contract import METADATA_KEYS, create_session, decode_metadata, run_session
+from occflownet.contract import calibration_arrays
+from occflownet.rig import default_rig
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +57,7 @@ def test_graph_is_standard_onnx_with_contract_v1_io(exported):
 
 def test_metadata(exported):
     path, _, model = exported
-    meta = read_metadata(create_session(path))
+    meta = decode_metadata(create_session(path).get_modelmeta().custom_metadata_map)
     assert set(METADATA_KEYS) <= set(meta)
     assert meta["classes"] == list(CLASS_NAMES) and meta["free_index"] == 17
     assert meta["grid"] == GRID.to_dict() and meta["cameras"] == list(CAMERAS)

@@ -12,7 +12,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from export.onnx_export import ExportError, deterministic_scatter_add, trace_to_onnx
+from occflownet.export.onnx_export import ExportError, deterministic_scatter_add, trace_to_onnx
 from occflownet.model.lift import LiftSplat, fine_grid
 from test_model_lift import _rig, assert_rotated
 

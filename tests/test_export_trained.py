@@ -12,9 +12,9 @@ import onnx
 import pytest
 
 from exported_models import FRAME, exported_trained_tiny, frame_available
-from export import onnx_export
-from export.parity import default_parity_samples, frame_sample
-from occflownet.inference_io import create_session, run_session
+from occflownet.export import onnx_export
+from occflownet.export.parity import default_parity_samples, frame_sample
+from occflownet.contract import create_session, run_session
 
 
 @pytest.fixture(scope="module")

@@ -3,12 +3,12 @@ import numpy as np
 import pytest
 import torch
 
-from occflownet.config import GRID, NUM_CLASSES
+from occflownet.occ3d import GRID, NUM_CLASSES
 from occflownet.data.flow import (FLOW_FORMAT_VERSION, FlowRecord, box_flows, boxes_from_annotations, flow_moves,
                                   load_flow_record, load_flow_records, save_flow_record, save_flow_records)
 from occflownet.geometry import (make_transform, matrix_to_quaternion, quaternion_to_matrix, transform_points,
                                  yaw_to_quaternion)
-from occflownet.render.box_voxels import voxels_in_box
+from occflownet.data.box_voxels import voxels_in_box
 from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
 
 CAR, BARRIER, PED = 4, 1, 7

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from occflownet.config import GRID, NUM_CLASSES
+from occflownet.occ3d import GRID, NUM_CLASSES
 from occflownet.data.flow import box_flows, flow_moves
 from occflownet.geometry import make_transform, matrix_to_quaternion, yaw_to_quaternion
-from occflownet.render.box_voxels import voxels_in_box
+from occflownet.data.box_voxels import voxels_in_box
 from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
 
 render = pytest.importorskip("occflownet.render.volume_render", reason="volume renderer not available")

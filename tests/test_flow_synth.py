@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from occflownet.config import DYNAMIC_CLASSES, FREE, GRID, NUM_CLASSES
+from occflownet.occ3d import DYNAMIC_CLASSES, FREE, GRID, NUM_CLASSES
 from occflownet.data.flow import flow_moves, keyframe_flow
 from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
 

@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 import torch
 
-from occflownet.config import GRID, Grid, NUM_CLASSES
+from occflownet.occ3d import GRID, Grid, NUM_CLASSES
 from occflownet.geometry import make_transform, rotation_z
-from occflownet.render.box_voxels import voxels_in_box
+from occflownet.data.box_voxels import voxels_in_box
 from occflownet.render.occupancy_flow import (BoxMove, PackedMoves, idw_neighbours, pack_moves, warp_volume,
                                               warp_volumes)
 

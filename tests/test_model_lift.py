@@ -2,10 +2,11 @@ import numpy as np
 import pytest
 import torch
 
-from occflownet.config import GRID
+from occflownet.occ3d import GRID
 from occflownet.geometry import rotation_z
 from occflownet.model.lift import LiftSplat, fine_grid, frustum_points, invert_3x3, scatter_pool, voxel_rows
-from occflownet.rig import calibration_arrays, default_rig
+from occflownet.contract import calibration_arrays
+from occflownet.rig import default_rig
 
 
 def _rig(h=6, w=10):

@@ -1,10 +1,11 @@
 import pytest
 import torch
 
-from occflownet.config import FREE, NUM_CLASSES
+from occflownet.occ3d import FREE, NUM_CLASSES
 from occflownet.model import create_model, fuse_occupancy, get_preset
 from occflownet.model.preprocess import preprocess_images, scale_intrinsics_to_features
-from occflownet.rig import calibration_arrays, default_rig
+from occflownet.contract import calibration_arrays
+from occflownet.rig import default_rig
 
 
 def _inputs(batch=1, width=160, height=90, seed=0):

@@ -2,9 +2,10 @@ import numpy as np
 import pytest
 import torch
 
-from occflownet.model.config import IMAGENET_MEAN, IMAGENET_STD
+from occflownet.model.presets import IMAGENET_MEAN, IMAGENET_STD
 from occflownet.model.preprocess import crop_window, preprocess_images, scale_intrinsics_to_features
-from occflownet.rig import calibration_arrays, default_rig
+from occflownet.contract import calibration_arrays
+from occflownet.rig import default_rig
 
 INPUT = (160, 288)
 
@@ -112,7 +113,7 @@ def test_preprocessing_exports_without_resize():
 
     import onnxruntime as ort
 
-    from export.onnx_export import trace_to_onnx
+    from occflownet.export.onnx_export import trace_to_onnx
 
     class Pre(torch.nn.Module):
         def forward(self, images, intrinsics):

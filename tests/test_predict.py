@@ -7,11 +7,13 @@ import numpy as np
 import pytest
 
 from exported_models import FRAME, SEED, exported_tiny, frame_available
-from export.parity import compare
+from occflownet.export.parity import compare
 from occflownet.cli import main
-from occflownet.config import CLASS_COLORS, GRID
-from occflownet.inference_io import bev_image, calibration_for_images, load_image_folder
-from occflownet.rig import calibration_arrays, default_rig
+from occflownet.occ3d import CLASS_COLORS, GRID
+from occflownet.contract import calibration_arrays
+from occflownet.pictures import top_down
+from occflownet.predict import load_image_folder
+from occflownet.rig import default_rig
 
 needs_frame = pytest.mark.skipif(not frame_available(), reason=f"real frame not found at {FRAME}")
 
@@ -106,7 +108,7 @@ def test_bev_picture_orientation():
     occ[190, 100, 3] = 4          # a car 36 m ahead       → top of the picture, centre column
     occ[100, 190, 2] = 11         # road 36 m to the left  → left side, middle row
     occ[100, 190, 9] = 15         # ... under a building   → the highest voxel wins
-    img = bev_image(occ, scale=1, mark_ego=False)
+    img = top_down(occ, scale=1, ego=None)
     assert img.shape == (200, 200, 3)
     assert (img[199 - 190, 199 - 100] == CLASS_COLORS[4]).all()
     assert (img[199 - 100, 199 - 190] == CLASS_COLORS[15]).all()
@@ -114,13 +116,13 @@ def test_bev_picture_orientation():
 
 
 def test_calibration_is_rescaled_to_the_image_size():
-    K_small = calibration_for_images(default_rig(480, 270), 1600, 900)[0]
+    K_small = calibration_arrays(default_rig(480, 270), 1600, 900)[0]
     K_native = calibration_arrays(default_rig(1600, 900))[0]
     assert np.allclose(K_small[:, :2, :2], K_native[:, :2, :2], rtol=1e-6)
     # principal point: (c + 0.5) · s − 0.5 (pixel centres)
     assert np.allclose(K_small[:, 0, 2], (240 + 0.5) * 1600 / 480 - 0.5)
     with pytest.raises(ValueError, match="aspect ratio"):
-        calibration_for_images(default_rig(480, 270), 1000, 1000)
+        calibration_arrays(default_rig(480, 270), 1000, 1000)
 
 
 @needs_frame

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from occflownet.config import DYNAMIC_FILTER_CLASSES, NUM_CLASSES
+from occflownet.occ3d import DYNAMIC_FILTER_CLASSES, NUM_CLASSES
 from occflownet.render.disocclusion import disocclude, dynamic_mask
 
 

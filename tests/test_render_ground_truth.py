@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from occflownet.config import FREE, NUM_CLASSES
+from occflownet.occ3d import FREE, NUM_CLASSES
 from occflownet.data.index import load_index
 from occflownet.data.loaders import load_occupancy
 from occflownet.data.rays import RayBuilder

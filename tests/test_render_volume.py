@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from occflownet.config import NUM_CLASSES, Grid
+from occflownet.occ3d import NUM_CLASSES, Grid
 from occflownet.render.volume_render import RenderConfig, render_rays, weights_from_density
 
 SMALL = Grid(lower=(-4.0, -4.0, -1.0), upper=(4.0, 4.0, 2.2), voxel_size=0.4, shape=(20, 20, 8))

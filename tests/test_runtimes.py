@@ -10,8 +10,8 @@ import onnx
 import pytest
 
 from exported_models import FRAME, exported_trained_tiny, frame_available
-from export.parity import compare, frame_sample
-from occflownet.inference_io import create_session, run_session
+from occflownet.export.parity import compare, frame_sample
+from occflownet.contract import create_session, run_session
 
 pytestmark = pytest.mark.skipif(not frame_available(), reason=f"real frame not found at {FRAME}")
 

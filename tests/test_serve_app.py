@@ -14,13 +14,13 @@ from serve_fixtures import (FRAME_DIR, build_fake_model, encode_image, fake_refe
                             real_frame_files, synthetic_images)
 from starlette.testclient import TestClient
 
-from occflownet.config import CAMERAS, CLASS_COLORS, FREE
+from occflownet.occ3d import CAMERAS, CLASS_COLORS, FREE
 from occflownet.rig import default_rig
-from serve.app import create_app
-from serve.calibration import calibration_for_sizes
-from serve.encode import top_down_rgb
-from serve.model_runtime import ModelLoadError, ModelRuntime
-from serve.settings import ServeSettings
+from occflownet.serve.app import create_app
+from occflownet.serve.calibration import calibration_for_sizes
+from occflownet.pictures import top_down
+from occflownet.serve.model_runtime import ModelLoadError, ModelRuntime
+from occflownet.serve.settings import ServeSettings
 
 SIZE = (96, 54)  # same aspect as the fake model's 480x270 default calibration
 
@@ -121,7 +121,7 @@ def test_every_format_round_trips_to_the_same_grid(client):
     r = client.post("/v1/occupancy", files=files, headers={"Accept": "image/png"})
     assert r.headers["content-type"] == "image/png"
     picture = cv2.cvtColor(cv2.imdecode(np.frombuffer(r.content, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-    np.testing.assert_array_equal(picture, top_down_rgb(grid, CLASS_COLORS, FREE))
+    np.testing.assert_array_equal(picture, top_down(grid, CLASS_COLORS, FREE))
 
 
 def test_explicit_calibration_and_real_frame(client):
@@ -362,8 +362,8 @@ def test_serve_never_imports_torch(model_path):
     code = f"""
 import sys
 from starlette.testclient import TestClient
-from serve.app import create_app
-from serve.settings import ServeSettings
+from occflownet.serve.app import create_app
+from occflownet.serve.settings import ServeSettings
 app = create_app(ServeSettings(model_path={str(model_path)!r}))
 with TestClient(app) as c:
     import time

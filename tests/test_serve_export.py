@@ -1,7 +1,7 @@
 """Integration: a real random-init ``tiny`` export (``occflownet export``) served over HTTP with the real frame.
 
 The server's answer must equal a plain onnxruntime run of the same file on the same frame, decoded and calibrated
-here independently of serve/ (cv2 RGB decode, occflownet.rig.calibration_arrays).
+here independently of serve/ (cv2 RGB decode, occflownet.contract.calibration_arrays).
 """
 import io
 import json
@@ -16,8 +16,8 @@ import pytest
 from serve_fixtures import FRAME_DIR, real_frame_files
 from starlette.testclient import TestClient
 
-from occflownet.config import CAMERAS
-from occflownet.rig import calibration_arrays
+from occflownet.occ3d import CAMERAS
+from occflownet.contract import calibration_arrays
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -53,9 +53,9 @@ def _direct(model: Path, images, K, T) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_real_export_served_over_http_matches_a_direct_run(tiny_model):
-    from serve.app import create_app
-    from serve.model_runtime import ModelRuntime
-    from serve.settings import ServeSettings
+    from occflownet.serve.app import create_app
+    from occflownet.serve.model_runtime import ModelRuntime
+    from occflownet.serve.settings import ServeSettings
 
     images, K, T = _direct_inputs()
     expected, _ = _direct(tiny_model, images, K, T)
@@ -113,9 +113,9 @@ def test_predict_and_http_give_identical_grids_for_the_frame_and_its_half_size_c
     from exported_models import exported_trained_tiny
     from occflownet.cli import main
     from occflownet.contract import calibration_arrays
-    from serve.app import create_app
-    from serve.model_runtime import ModelRuntime
-    from serve.settings import ServeSettings
+    from occflownet.serve.app import create_app
+    from occflownet.serve.model_runtime import ModelRuntime
+    from occflownet.serve.settings import ServeSettings
 
     model = exported_trained_tiny()[0]
     half = tmp_path / "half"

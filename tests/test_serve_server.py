@@ -16,9 +16,9 @@ import pytest
 import uvicorn
 from serve_fixtures import build_fake_model, image_files, stop_server, synthetic_images, wait_ready
 
-from serve.app import create_app
-from serve.model_runtime import ModelRuntime
-from serve.settings import ServeSettings
+from occflownet.serve.app import create_app
+from occflownet.serve.model_runtime import ModelRuntime
+from occflownet.serve.settings import ServeSettings
 
 REPO = Path(__file__).resolve().parents[1]
 IMAGES = synthetic_images((96, 54))

@@ -10,16 +10,17 @@ import numpy as np
 import pytest
 from serve_fixtures import FRAME_DIR, encode_image, fake_metadata, synthetic_images
 
-from occflownet.config import CAMERAS, CLASS_COLORS, FREE
+from occflownet.occ3d import CAMERAS, CLASS_COLORS, FREE
 from occflownet.rig import default_rig
-from serve.calibration import CalibrationError, calibration_for_sizes, parse_calibration, validate_calibration
+from occflownet.serve.calibration import CalibrationError, calibration_for_sizes, parse_calibration, validate_calibration
 from occflownet.contract import scale_intrinsics
-from serve.decode import ImageError, check_header, common_size, decode_image, image_header, intrinsics_for_size
-from serve.encode import NotAcceptable, encode, negotiate, top_down_rgb
-from serve.limits import BodySizeLimitMiddleware, InferenceGate, Saturated
-from serve.metrics import Metrics
-from serve.model_runtime import ModelLoadError, parse_metadata
-from serve.settings import ServeSettings
+from occflownet.serve.decode import ImageError, check_header, common_size, decode_image, image_header, intrinsics_for_size
+from occflownet.pictures import top_down
+from occflownet.serve.encode import NotAcceptable, encode, negotiate
+from occflownet.serve.limits import BodySizeLimitMiddleware, InferenceGate, Saturated
+from occflownet.serve.metrics import Metrics
+from occflownet.serve.model_runtime import ModelLoadError, parse_metadata
+from occflownet.serve.settings import ServeSettings
 
 RGB = synthetic_images((64, 36))[0]
 
@@ -220,7 +221,7 @@ def test_all_encoders_carry_the_same_grid():
     np.testing.assert_array_equal(np.load(io.BytesIO(npy)), grid)
     png, _ = encode("image/png", grid, _MD, {})
     picture = cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-    np.testing.assert_array_equal(picture, top_down_rgb(grid, CLASS_COLORS, FREE))
+    np.testing.assert_array_equal(picture, top_down(grid, CLASS_COLORS, FREE))
 
 
 def test_top_down_orientation_and_highest_voxel():
@@ -228,7 +229,7 @@ def test_top_down_orientation_and_highest_voxel():
     grid[199, 199, 0] = 4           # car at +x (front), +y (left) corner, on the ground
     grid[199, 199, 5] = 15          # manmade above it: the top-most wins
     grid[0, 0, 3] = 7               # pedestrian at the rear right corner
-    rgb = top_down_rgb(grid, CLASS_COLORS, FREE)
+    rgb = top_down(grid, CLASS_COLORS, FREE)
     assert rgb.shape == (400, 400, 3)
     np.testing.assert_array_equal(rgb[0, 0], CLASS_COLORS[15])       # image top-left = front-left
     np.testing.assert_array_equal(rgb[-1, -1], CLASS_COLORS[7])      # image bottom-right = rear-right

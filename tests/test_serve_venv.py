@@ -102,7 +102,7 @@ def test_serving_venv_has_no_torch_and_serves(serve_venv, tmp_path):
         assert r.status_code == 200, r.text
         grid = np.frombuffer(r.content, np.uint8)
         assert grid.size == 640_000 and grid.max() <= 17
-        modules = subprocess.run([str(python), "-c", "import serve.app, sys; print(serve.app.__file__); "
+        modules = subprocess.run([str(python), "-c", "import occflownet.serve.app, sys; print(occflownet.serve.app.__file__); "
                                   "print('torch' in sys.modules)"], capture_output=True, text=True, cwd=tmp_path)
         assert str(serve_venv) in modules.stdout and modules.stdout.strip().endswith("False"), modules
     finally:

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from occflownet.config import GRID, map_lidarseg
+from occflownet.occ3d import GRID, map_lidarseg
 from occflownet.geometry import invert, make_transform, transform_points
 from occflownet.synth.camera import cast_rays, render_camera
 from occflownet.synth.frame import render_keyframe

@@ -4,7 +4,7 @@ import json
 import cv2
 import numpy as np
 
-from occflownet.config import CAMERAS, LIDAR, LIDARSEG_NAMES
+from occflownet.occ3d import CAMERAS, LIDAR, LIDARSEG_NAMES
 from occflownet.geometry import quaternion_to_matrix
 from occflownet.rig import default_rig
 

@@ -1,7 +1,7 @@
 """Voxel traversal (masks) and voxelisation against independent brute-force answers on small cases."""
 import numpy as np
 
-from occflownet.config import FREE, Grid
+from occflownet.occ3d import FREE, Grid
 from occflownet.synth.frame import SensorRig, camera_mask, camera_rays, surface_rays
 from occflownet.synth.voxelize import traverse, voxelize
 from occflownet.synth.world import Boxes, GroundRaster, World

@@ -42,9 +42,9 @@ def _fixed_batch_loss(root, out, weights) -> dict:
     """The training loss of a fixed batch (step 0's items, fixed render jitter) under the given raw weights."""
     from occflownet.data.index import load_index
     from occflownet.model.checkpoint import read_checkpoint
-    from occflownet.model.config import ModelConfig
+    from occflownet.model.presets import ModelConfig
     from occflownet.model.occupancy_model import create_model
-    from occflownet.train.config import TrainConfig
+    from occflownet.train.recipe import TrainConfig
     from occflownet.train.dataset import TrainingSamples, collate
     from occflownet.train.step import LossComputer
 

@@ -53,7 +53,7 @@ def run(args) -> int:
 
     from occflownet.data.tables import DatasetError
     from occflownet.eval import dumps_json, format_table
-    from occflownet.evaluate import evaluate, select_samples
+    from occflownet.eval.evaluate import evaluate, select_samples
 
     source = args.model or args.checkpoint
     try:
@@ -62,11 +62,11 @@ def run(args) -> int:
             raise FileNotFoundError(f"{what} not found: {source}")
         samples = select_samples(args.dataroot, args.version, args.split, args.max_samples)
         if args.model:
-            from occflownet.evaluate import onnx_predictor
+            from occflownet.eval.evaluate import onnx_predictor
 
             predict = onnx_predictor(args.model, args.threads)
         else:
-            from occflownet.evaluate import checkpoint_predictor
+            from occflownet.eval.evaluate import checkpoint_predictor
 
             predict = checkpoint_predictor(args.checkpoint)
         result = evaluate(samples, predict, batch_size=args.batch_size, save_predictions=args.save_predictions,

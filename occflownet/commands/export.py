@@ -23,7 +23,7 @@ def run(args) -> int:
     if args.preset and not args.random_init:
         print("occflownet export: --preset needs --random-init (or use --checkpoint)", file=sys.stderr)
         return 2
-    from export.onnx_export import ExportError, export_model
+    from occflownet.export.onnx_export import ExportError, export_model
     from occflownet.model import CheckpointError
     from occflownet.predict import model_from_source
 
@@ -35,7 +35,7 @@ def run(args) -> int:
         return 1
     print(result.summary())
     if args.fp16 or args.int8:
-        from export.variants import write_variants
+        from occflownet.export.variants import write_variants
 
         try:
             frame = args.parity_frame[0] if args.parity_frame else None

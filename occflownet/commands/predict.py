@@ -26,32 +26,30 @@ def add_arguments(parser):
 def run(args) -> int:
     import time
 
-    from occflownet import inference_io as io
-    from occflownet.config import CLASS_NAMES, FREE
+    from occflownet import contract, pictures, predict
+    from occflownet.occ3d import CLASS_NAMES, FREE
 
     if args.preset and not args.random_init:
         print("occflownet predict: --preset needs --random-init (or use --checkpoint / --model)", file=sys.stderr)
         return 2
     try:
-        images = io.load_image_folder(args.images)
-        K, T = io.calibration_for_images(io.load_calibration(args.calib), images.shape[2], images.shape[1])
+        images = predict.load_image_folder(args.images)
+        K, T = contract.calibration_arrays(contract.load_calibration(args.calib), images.shape[2], images.shape[1])
         t0 = time.perf_counter()
         if args.model:
-            session = io.create_session(args.model, args.threads)
-            occupancy, density = io.run_session(session, images, K, T)
+            session = contract.create_session(args.model, args.threads)
+            occupancy, density = contract.run_session(session, images, K, T)
         else:
-            from occflownet.predict import model_from_source, predict_torch
-
-            model = model_from_source(args.checkpoint, args.preset, args.seed)
-            occupancy, density = predict_torch(model, images, K, T)
+            model = predict.model_from_source(args.checkpoint, args.preset, args.seed)
+            occupancy, density = predict.predict_torch(model, images, K, T)
         seconds = time.perf_counter() - t0
-        io.save_grid(args.out, occupancy, density)
+        predict.save_grid(args.out, occupancy, density)
         if args.png:
-            io.save_png(args.png, io.bev_image(occupancy))
+            pictures.save_png(args.png, pictures.top_down(occupancy))
     except (FileNotFoundError, ValueError, OSError) as exc:
         print(f"occflownet predict: {exc}", file=sys.stderr)
         return 1
-    counts = io.class_counts(occupancy)
+    counts = predict.class_counts(occupancy)
     occupied = sum(n for c, n in counts.items() if c != FREE)
     top = sorted(((n, c) for c, n in counts.items() if c != FREE and n), reverse=True)[:5]
     print(f"wrote {args.out}: {occupied} occupied voxels of {occupancy.size} ({seconds * 1000:.0f} ms); "

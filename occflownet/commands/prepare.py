@@ -102,7 +102,7 @@ def _print_summary(index) -> None:
 
 
 def _print_class_stats(stats) -> None:
-    from occflownet.config import CLASS_NAMES
+    from occflownet.occ3d import CLASS_NAMES
 
     print(f"class counts over split '{stats.split}' ({stats.num_samples} keyframes): class, N_c, weight")
     for c, (n, w) in enumerate(zip(stats.counts, stats.weights)):

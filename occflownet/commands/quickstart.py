@@ -88,7 +88,7 @@ def _write_picture(world, predictions, path):
 
     from occflownet.data.index import load_index
     from occflownet.eval.picture import sample_side_by_side
-    from occflownet.inference_io import save_png
+    from occflownet.pictures import save_png
 
     index = load_index(world)
     sample = index[int(index.split_positions("val")[0])]

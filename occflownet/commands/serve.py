@@ -32,7 +32,7 @@ def add_arguments(parser):
 
 
 def _settings(args):
-    from serve.settings import ServeSettings
+    from occflownet.serve.settings import ServeSettings
 
     settings = ServeSettings.from_env()
     if args.model:
@@ -58,13 +58,13 @@ def run(args) -> int:
         print("occflownet serve: no model given: pass --model FILE or set OCCFLOWNET_MODEL", file=sys.stderr)
         return 2
 
-    from serve.malloc import cap_malloc_arenas
+    from occflownet.serve.malloc import cap_malloc_arenas
 
     cap_malloc_arenas()  # before onnxruntime and uvicorn start their threads
     import uvicorn
 
-    from serve.app import create_app
-    from serve.model_runtime import ModelLoadError, ModelRuntime
+    from occflownet.serve.app import create_app
+    from occflownet.serve.model_runtime import ModelLoadError, ModelRuntime
 
     try:
         runtime = ModelRuntime.load(settings.model_path, resolved)
@@ -81,7 +81,7 @@ def run(args) -> int:
         else:
             del runtime  # each worker process loads its own session from the environment
             os.environ.update(settings.to_env())
-            uvicorn.run("serve.app:create_app_from_env", factory=True, workers=resolved.workers, **common)
+            uvicorn.run("occflownet.serve.app:create_app_from_env", factory=True, workers=resolved.workers, **common)
     except SystemExit as exc:  # uvicorn exits 3 when start-up fails (e.g. the port is taken)
         return int(exc.code or 0)
     return 0

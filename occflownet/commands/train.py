@@ -58,7 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def config_from_args(args):
     from occflownet.data.index import load_index
-    from occflownet.train.config import TrainConfig
+    from occflownet.train.recipe import TrainConfig
 
     defaults = PRESET_DEFAULTS[args.preset]
 

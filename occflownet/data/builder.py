@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.config import CAMERAS, LIDAR, category_to_occ3d
+from occflownet.occ3d import CAMERAS, LIDAR, category_to_occ3d
 from occflownet.data.index import MINI_SPLITS, SampleIndex
 from occflownet.data.tables import DatasetError, Tables, field, load_tables
 from occflownet.geometry import make_transform

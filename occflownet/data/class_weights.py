@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occflownet.config import NUM_CLASSES
+from occflownet.occ3d import NUM_CLASSES
 
 
 @dataclass(frozen=True)

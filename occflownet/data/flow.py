@@ -21,9 +21,9 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from ..config import DYNAMIC_CLASSES, GRID, Grid, category_to_occ3d
+from ..occ3d import DYNAMIC_CLASSES, GRID, Grid, category_to_occ3d
 from ..geometry import invert, make_transform, matrix_to_quaternion, quaternion_to_matrix
-from ..render.box_voxels import MARGIN_ADD, MARGIN_SCALE, voxels_in_box
+from .box_voxels import MARGIN_ADD, MARGIN_SCALE, voxels_in_box
 
 FLOW_FORMAT_VERSION = 1
 _BOX_KEYS = ("instance_token", "label", "center", "size_wlh", "rotation")

@@ -15,7 +15,7 @@ recovered per ring:
    - the ring has at least ``min_ring_points`` returns (else its elevation is unknown).
 
 Directions are unit vectors in the LiDAR frame through the bin centres at the ring's elevation. What they
-supervise: the rendered opacity of the grid along the beam goes to 0 (``occflownet.losses.free_space_loss``).
+supervise: the rendered opacity of the grid along the beam goes to 0 (``occflownet.train.losses.free_space_loss``).
 """
 from __future__ import annotations
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from occflownet import __version__
-from occflownet.config import CAMERAS
+from occflownet.occ3d import CAMERAS
 from occflownet.data.records import Boxes, CameraRecord, LidarRecord, SampleRecord
 from occflownet.data.tables import OPTIONAL_TABLES, REQUIRED_TABLES, DatasetError, resolve_version
 

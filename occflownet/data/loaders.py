@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.config import FREE, GRID
+from occflownet.occ3d import FREE, GRID
 from occflownet.data.tables import DatasetError
 
 LIDAR_FIELDS = 5  # x, y, z, intensity, ring (float32) per point in nuScenes .pcd.bin

@@ -28,7 +28,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from occflownet.config import DYNAMIC_FILTER_CLASSES, GRID, map_lidarseg
+from occflownet.occ3d import DYNAMIC_FILTER_CLASSES, GRID, map_lidarseg
 from occflownet.data.free_space import FreeSpaceConfig, missing_beams
 from occflownet.data.loaders import load_lidar, load_lidarseg
 from occflownet.data.tables import DatasetError

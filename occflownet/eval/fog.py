@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from occflownet.config import FREE, GRID
+from occflownet.occ3d import FREE, GRID
 from occflownet.synth.voxelize import traverse
 
 _KEYS = ("voxels", "labelled", "predicted", "false_positive", "true_positive")

@@ -8,13 +8,13 @@ has 0/0 = NaN and is skipped by the mean). Ground-truth voxels with a label outs
 left out, as in ``hist_info``. The camera-mask variant keeps only voxels where ``mask_camera`` is set.
 
 This module is numpy only. Volumes are ``[X, Y, Z] = [200, 200, 16]`` class indices in the ego frame of the
-sample (Occ3D layout, see ``occflownet.config``).
+sample (Occ3D layout, see ``occflownet.occ3d``).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from occflownet.config import CLASS_NAMES, DYNAMIC_CLASSES, FREE, NUM_CLASSES, STATIC_CLASSES
+from occflownet.occ3d import CLASS_NAMES, DYNAMIC_CLASSES, FREE, NUM_CLASSES, STATIC_CLASSES
 
 NUM_LABELS = FREE + 1  # 18: classes 0..16 and free
 IGNORE = 255  # ground-truth label left out of the confusion matrix (official ``hist_info``: gt outside [0, 18))

@@ -3,7 +3,7 @@
 Top row: one camera's image, the ground-truth grid seen from that camera, the predicted grid seen from that camera
 (each pixel coloured by the class of the first occupied voxel along its ray, ``first_hits``: an exact voxel walk,
 no model needed; pixels whose ray meets nothing in the grid show the camera image dimmed). Bottom row: top-down
-views of the ground truth and the prediction (``bev_image``: highest occupied voxel per column). Grids are uint8
+views of the ground truth and the prediction (``pictures.top_down``: highest occupied voxel per column). Grids are uint8
 [200, 200, 16] ([x, y, z], ego frame of the keyframe, 17 = free); the camera's ``cam2ego`` maps the OpenCV camera
 frame to that ego frame and ``intrinsic`` is for the image as given.
 """
@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from occflownet.config import CLASS_COLORS, FREE, GRID
+from occflownet.occ3d import CLASS_COLORS, FREE, GRID
 from occflownet.eval.ray_iou import first_hits
-from occflownet.inference_io import bev_image
+from occflownet.pictures import class_legend, top_down
 
 
 def camera_view(occupancy: np.ndarray, image: np.ndarray, intrinsic: np.ndarray, cam2ego: np.ndarray,
@@ -59,34 +59,18 @@ def side_by_side(prediction: np.ndarray, ground_truth: np.ndarray, image: np.nda
            _label(_fit(camera_view(ground_truth, image, intrinsic, cam2ego), panel_width), "ground truth"),
            _label(_fit(camera_view(prediction, image, intrinsic, cam2ego), panel_width), "prediction")]
     row1 = np.concatenate(top, axis=1)
-    bev = [_label(_fit(bev_image(g, scale=2), panel_width), t)
+    bev = [_label(_fit(top_down(g, scale=2), panel_width), t)
            for g, t in ((ground_truth, "ground truth, top-down"), (prediction, "prediction, top-down"))]
     row2 = np.concatenate(bev + [np.full_like(bev[0], 255)], axis=1)
-    legend = _legend(row1.shape[1])
+    legend = class_legend(row1.shape[1])
     return np.concatenate([row1, row2, legend], axis=0)
-
-
-def _legend(width: int) -> np.ndarray:
-    import cv2
-
-    from occflownet.config import CLASS_NAMES
-
-    cols, row_h = 6, 22
-    rows = int(np.ceil(FREE / cols))
-    out = np.full((rows * row_h + 6, width, 3), 255, np.uint8)
-    cell = width // cols
-    for c in range(FREE):
-        x, y = (c % cols) * cell + 6, (c // cols) * row_h + 4
-        out[y:y + 14, x:x + 14] = CLASS_COLORS[c]
-        cv2.putText(out, CLASS_NAMES[c], (x + 18, y + 12), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
-    return out
 
 
 def sample_side_by_side(dataroot, sample, prediction: np.ndarray, camera: int = 0) -> np.ndarray:
     """:func:`side_by_side` of a keyframe (``sample``: a SampleRecord of the index of ``dataroot``):
     ``prediction`` uint8 [200, 200, 16] against its Occ3D labels, seen from camera ``camera`` (index in
     ``config.CAMERAS``)."""
-    from occflownet.config import CAMERAS
+    from occflownet.occ3d import CAMERAS
     from occflownet.data.loaders import load_occupancy, load_sample_images
 
     images = load_sample_images(dataroot, sample)

@@ -29,7 +29,7 @@ from typing import Iterable
 
 import numpy as np
 
-from occflownet.config import CLASS_NAMES, FREE, GRID, NUM_CLASSES, Grid
+from occflownet.occ3d import CLASS_NAMES, FREE, GRID, NUM_CLASSES, Grid
 from occflownet.eval.metrics import check_labels, nanmean
 from occflownet.geometry import invert
 

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from occflownet.config import CLASS_NAMES, DYNAMIC_CLASSES, NUM_CLASSES
+from occflownet.occ3d import CLASS_NAMES, DYNAMIC_CLASSES, NUM_CLASSES
 
 
 def to_json_ready(obj):

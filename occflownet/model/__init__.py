@@ -3,7 +3,7 @@
 ``from occflownet.model import ModelConfig, PRESETS, get_preset, OccupancyModel, save_checkpoint, load_checkpoint``
 """
 from occflownet.model.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
-from occflownet.model.config import PRESETS, ModelConfig, get_preset
+from occflownet.model.presets import PRESETS, ModelConfig, get_preset
 from occflownet.model.occupancy_model import InferenceGraph, OccupancyModel, create_model, fuse_occupancy
 
 __all__ = [

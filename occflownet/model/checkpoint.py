@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 
 from occflownet import __version__
-from occflownet.model.config import ModelConfig
+from occflownet.model.presets import ModelConfig
 from occflownet.model.occupancy_model import OccupancyModel
 
 

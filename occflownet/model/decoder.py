@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from occflownet.config import FREE, NUM_CLASSES
+from occflownet.occ3d import FREE, NUM_CLASSES
 
 # Initial bias of Φσ's output: σ starts near sigmoid(-2.2) ≈ 0.1 (most of space is free), so freshly initialised
 # models render rays that travel into the scene instead of stopping in the first voxels.

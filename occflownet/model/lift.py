@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from occflownet.config import GRID
+from occflownet.occ3d import GRID
 from occflownet.model.decoder import unblock
 
 

@@ -1,19 +1,19 @@
 """The full occupancy network: uint8 images → preprocessing → ResNet → neck → LSS lift → 3D decoder → σ, logits.
 
-Inputs (all batch-first, camera order ``occflownet.config.CAMERAS``):
+Inputs (all batch-first, camera order ``occflownet.occ3d.CAMERAS``):
 - images uint8 [B, 6, H, W, 3] RGB, any H×W;
 - intrinsics float32 [B, 6, 3, 3] for that H×W (camera frame → pixels, OpenCV camera);
 - cam2ego float32 [B, 6, 4, 4] (camera frame → ego frame of the current keyframe).
-Outputs are in the ego frame, grid indexed [x, y, z] (``occflownet.config.GRID``).
+Outputs are in the ego frame, grid indexed [x, y, z] (``occflownet.occ3d.GRID``).
 """
 from __future__ import annotations
 
 import torch
 from torch import nn
 
-from occflownet.config import FREE
+from occflownet.occ3d import FREE
 from occflownet.model.backbone import ResNet
-from occflownet.model.config import FEATURE_STRIDE, ModelConfig
+from occflownet.model.presets import FEATURE_STRIDE, ModelConfig
 from occflownet.model.decoder import VoxelDecoder, unblock
 from occflownet.model.lift import DepthContextHead, LiftSplat
 from occflownet.model.neck import Stride16Neck

@@ -3,7 +3,7 @@
 Import-light: names are loaded from their submodules on first use, so ``import occflownet.render`` pulls in
 nothing heavy. Modules: ``volume_render`` (RenderConfig, RenderOutput, render_rays, weights_from_density),
 ``sampling`` (coarse/fine distances along rays), ``numba_render`` + ``numba_kernels`` (the fast CPU path),
-``lookup`` (grid_sample lookups: reference and GPU path), ``disocclusion``, ``box_voxels``, ``occupancy_flow``.
+``lookup`` (grid_sample lookups: reference and GPU path), ``disocclusion``, ``occupancy_flow``.
 """
 from __future__ import annotations
 

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import torch
 
-from occflownet.config import DYNAMIC_FILTER_CLASSES
+from occflownet.occ3d import DYNAMIC_FILTER_CLASSES
 
 
 def dynamic_mask(logits: torch.Tensor, classes: Sequence[int] = DYNAMIC_FILTER_CLASSES) -> torch.Tensor:

@@ -1,7 +1,7 @@
 """Trilinear lookup of voxel volumes at ray samples with ``F.grid_sample``: the reference the fast path
 (``numba_render``) is checked and benchmarked against, and the path used on GPUs.
 
-Frames and conventions: points are in the ego frame (metres) of the grid ``grid`` (``occflownet.config.Grid``);
+Frames and conventions: points are in the ego frame (metres) of the grid ``grid`` (``occflownet.occ3d.Grid``);
 voxel (i, j, k) has its centre at ``grid.lower + (ijk + 0.5) * grid.voxel_size``. The *continuous index* of a
 point is ``(p - lower) / voxel_size - 0.5``, so voxel centres sit at integers. Trilinear interpolation blends
 the 8 voxel centres around a point; a corner outside the grid contributes zero (``grid_sample`` with
@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from occflownet.config import Grid
+from occflownet.occ3d import Grid
 
 
 def grid_sample_lookup(volume: torch.Tensor, points: torch.Tensor, ray_volume: torch.Tensor,

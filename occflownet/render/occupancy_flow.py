@@ -34,7 +34,7 @@ from typing import Literal, NamedTuple, Sequence
 import numpy as np
 import torch
 
-from ..config import GRID, Grid
+from ..occ3d import GRID, Grid
 
 Mover = Literal["idw", "nearest"]
 MOVERS: tuple[str, ...] = ("idw", "nearest")

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import torch
 
-from occflownet.config import GRID, Grid
+from occflownet.occ3d import GRID, Grid
 from occflownet.render.lookup import grid_sample_lookup
 from occflownet.render.sampling import cdf_from_sigma, importance_sample, intervals_from_samples, \
     uniform_jittered_edges

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occflownet.config import FREE
+from occflownet.occ3d import FREE
 from occflownet.synth.raycast import Block, box_faces, boxes_in_range, cast_blocks, ground_t
 from occflownet.synth.shading import box_color, ground_color, haze, lambert, shadow_raster, sky_color
 from occflownet.synth.world import Boxes, World

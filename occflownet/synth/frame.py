@@ -12,9 +12,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from occflownet.config import CAMERAS, FREE, GRID, Grid
+from occflownet.occ3d import CAMERAS, FREE, GRID, Grid
 from occflownet.geometry import transform_points
-from occflownet.rig import calibration_arrays, default_rig
+from occflownet.contract import calibration_arrays
+from occflownet.rig import default_rig
 from occflownet.synth.camera import CameraRender, render_camera
 from occflownet.synth.layout import KEYFRAME_INTERVAL_S
 from occflownet.synth.lidar import LidarScan, LidarSpec, cast_lidar, default_lidar2ego

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.config import CAMERAS, LIDAR
+from occflownet.occ3d import CAMERAS, LIDAR
 from occflownet.geometry import yaw_to_quaternion
 from occflownet.synth.frame import Keyframe, SensorRig, render_keyframe
 from occflownet.synth.layout import WorldConfig, build_world

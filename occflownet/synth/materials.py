@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occflownet.config import LIDARSEG_NAMES, LIDARSEG_TO_OCC3D
+from occflownet.occ3d import LIDARSEG_NAMES, LIDARSEG_TO_OCC3D
 
 # Texture kinds (an int8 per primitive; the renderer switches on these).
 TEX_PLAIN, TEX_FACADE, TEX_FOLIAGE, TEX_GLASS, TEX_DARK, TEX_STRIPES, TEX_BUS = range(7)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from occflownet.config import FREE, GRID, Grid
+from occflownet.occ3d import FREE, GRID, Grid
 from occflownet.geometry import invert, transform_points
 from occflownet.synth.materials import voxel_priority
 from occflownet.synth.world import Boxes, World

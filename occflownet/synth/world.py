@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from occflownet.config import LIDARSEG_TO_OCC3D
+from occflownet.occ3d import LIDARSEG_TO_OCC3D
 from occflownet.geometry import make_transform, rotation_z, transform_points
 
 

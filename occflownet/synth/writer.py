@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.config import CAMERAS, LIDAR, LIDARSEG_NAMES
+from occflownet.occ3d import CAMERAS, LIDAR, LIDARSEG_NAMES
 from occflownet.geometry import matrix_to_quaternion
 
 TABLES = ("category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose", "log",

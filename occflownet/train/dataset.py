@@ -21,8 +21,8 @@ from occflownet.data.loaders import load_occupancy, load_sample_images
 from occflownet.data.free_space import FreeSpaceConfig
 from occflownet.data.rays import RayBuilder, RayConfig, sample_rays
 from occflownet.geometry import invert, transform_points
-from occflownet.config import GRID
-from occflownet.train.config import TrainConfig
+from occflownet.occ3d import GRID
+from occflownet.train.recipe import TrainConfig
 
 MAX_DEPTH_POINTS = 40000  # LiDAR points per sample kept for the LSS depth loss
 

@@ -23,7 +23,7 @@ from occflownet.model import get_preset
 from occflownet.model.checkpoint import read_checkpoint, save_checkpoint
 from occflownet.model.occupancy_model import create_model
 from occflownet.train import distributed as ddp
-from occflownet.train.config import TrainConfig
+from occflownet.train.recipe import TrainConfig
 from occflownet.train.dataset import TrainingSamples, collate
 from occflownet.train.ema import EMA
 from occflownet.train.run_log import RunLogger

@@ -11,12 +11,12 @@ from dataclasses import replace
 
 import torch
 
-from occflownet import losses as L
-from occflownet.model.config import ModelConfig
+from occflownet.train import losses as L
+from occflownet.model.presets import ModelConfig
 from occflownet.render.disocclusion import disocclude
 from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
 from occflownet.render.volume_render import RenderConfig, render_rays
-from occflownet.train.config import TrainConfig
+from occflownet.train.recipe import TrainConfig
 
 
 class LossComputer:

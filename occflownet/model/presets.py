@@ -16,7 +16,7 @@ from __future__ import annotations
 import copy
 from dataclasses import asdict, dataclass, field, fields, replace
 
-from occflownet.config import GRID
+from occflownet.occ3d import GRID
 from occflownet.rig import default_rig
 
 HEAD_INITS = ("prior", "official")  # σ/semantic head initialisations (decoder.VoxelDecoder)

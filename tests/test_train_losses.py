@@ -1,4 +1,4 @@
-"""Losses (occflownet.losses): hand-computed values, LiDAR depth targets, modes."""
+"""Losses (occflownet.train.losses): hand-computed values, LiDAR depth targets, modes."""
 from __future__ import annotations
 
 import math
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from occflownet.config import NUM_CLASSES
-from occflownet.losses import (LossConfig, lidar_depth_loss, lidar_depth_targets, ray_losses, render_losses,
+from occflownet.occ3d import NUM_CLASSES
+from occflownet.train.losses import (LossConfig, lidar_depth_loss, lidar_depth_targets, ray_losses, render_losses,
                                total_loss, voxel_losses)
 
 LOG17 = math.log(NUM_CLASSES)
@@ -129,7 +129,7 @@ def test_total_loss_modes():
 
 
 def test_free_space_loss_is_zero_for_transparent_beams_and_grows_with_opacity():
-    from occflownet.losses import LossConfig, free_space_loss, total_loss
+    from occflownet.train.losses import LossConfig, free_space_loss, total_loss
 
     assert float(free_space_loss(torch.zeros(5))) == 0.0
     half = float(free_space_loss(torch.full((4,), 0.5)))

@@ -1,4 +1,4 @@
-"""`occflownet eval` / occflownet.evaluate: known answers (ground truth as prediction scores 1.0, a camera-mask-only
+"""`occflownet eval` / occflownet.eval.evaluate: known answers (ground truth as prediction scores 1.0, a camera-mask-only
 prediction scores 1.0 only with the mask), wiring of the model inputs and ray origins, saved predictions, JSON
 layout, ONNX = torch without importing torch, and errors that name the problem before anything runs."""
 import hashlib
@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from occflownet.cli import main
-from occflownet.config import CLASS_NAMES, FREE, NUM_CLASSES
+from occflownet.occ3d import CLASS_NAMES, FREE, NUM_CLASSES
 from occflownet.data.index import load_index, save_index
 from occflownet.data.loaders import load_occupancy, load_sample_images
 from occflownet.eval import OccupancyMetric, RayIoUMetric, scene_ray_origins
-from occflownet.evaluate import EvalSamples, evaluate, select_samples
+from occflownet.eval.evaluate import EvalSamples, evaluate, select_samples
 
 CLASSES = list(CLASS_NAMES[:NUM_CLASSES])
 
@@ -119,8 +119,8 @@ def informative_model(prepared_synth_root, tmp_path_factory):
     random tiny predicts every voxel free, which would make the parity check below vacuous)."""
     import torch
 
-    from export.onnx_export import export_model
-    from export.parity import ParitySample
+    from occflownet.export.onnx_export import export_model
+    from occflownet.export.parity import ParitySample
     from occflownet.model import create_model, get_preset, save_checkpoint
 
     root, _ = prepared_synth_root

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from occflownet.config import FREE, NUM_CLASSES
+from occflownet.occ3d import FREE, NUM_CLASSES
 
 MODES = ("2d", "3d", "2d+3d")
 

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from occflownet.config import GRID
+from occflownet.occ3d import GRID
 from occflownet.geometry import quaternion_to_matrix, yaw_to_quaternion
-from occflownet.render.box_voxels import enlarged_extent, voxel_centers, voxels_in_box
+from occflownet.data.box_voxels import enlarged_extent, voxel_centers, voxels_in_box
 
 # (0.2, 0.2, 1.2) is a voxel centre: x, y centres are -39.8 + 0.4 n, z centres -0.8 + 0.4 n.
 CENTRE = np.array([0.2, 0.2, 1.2])

@@ -30,7 +30,7 @@ class TrainConfig:
     depth_loss: bool = True          # rendered depth MSE and the LSS LiDAR depth BCE
     density_scale: float = 1.0       # rendering uses τ_i = density_scale · σ_i · δ_i; 1.0 = official (σ per metre)
     voxel_mask: bool = False         # 3D voxel losses only inside mask_camera (official: False, every voxel)
-    head_init: str = ""              # "" = the preset's; "prior" or "official" (model/config.py HEAD_INITS)
+    head_init: str = ""              # "" = the preset's; "prior" or "official" (model/presets.py HEAD_INITS)
     free_space: bool = False         # also render LiDAR beams without a return; their opacity → 0 (beyond the paper)
     free_rays_per_step: int = 2048   # free-space beams per sample per step (with free_space)
     free_space_weight: float = 1.0   # weight of the free-space term −log(1 − opacity)

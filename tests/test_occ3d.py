@@ -1,7 +1,7 @@
 import numpy as np
 
-from occflownet import config, geometry
-from occflownet.config import GRID
+from occflownet import geometry, occ3d
+from occflownet.occ3d import GRID
 
 
 def test_grid_matches_occ3d():
@@ -22,19 +22,19 @@ def test_index_of_voxel_centres_round_trip():
 
 
 def test_class_table():
-    assert len(config.CLASS_NAMES) == 18 and config.CLASS_NAMES[config.FREE] == "free"
-    assert config.CLASS_COLORS.shape == (18, 3)
-    assert set(config.DYNAMIC_CLASSES).isdisjoint(config.STATIC_CLASSES)
-    assert len(config.DYNAMIC_CLASSES) + len(config.STATIC_CLASSES) == config.NUM_CLASSES
+    assert len(occ3d.CLASS_NAMES) == 18 and occ3d.CLASS_NAMES[occ3d.FREE] == "free"
+    assert occ3d.CLASS_COLORS.shape == (18, 3)
+    assert set(occ3d.DYNAMIC_CLASSES).isdisjoint(occ3d.STATIC_CLASSES)
+    assert len(occ3d.DYNAMIC_CLASSES) + len(occ3d.STATIC_CLASSES) == occ3d.NUM_CLASSES
 
 
 def test_lidarseg_mapping_known_answers():
     raw = np.array([9, 14, 15, 16, 17, 18, 21, 2, 3, 4, 6, 12, 22, 23, 24, 25, 26, 27, 28, 30, 0, 1, 5, 31])
     want = np.array([1, 2, 3, 3, 4, 5, 6, 7, 7, 7, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 0, 0, 0, 0])
-    assert np.array_equal(config.map_lidarseg(raw), want)
-    assert config.category_to_occ3d("vehicle.car") == 4
-    assert config.category_to_occ3d("human.pedestrian.adult") == 7
-    assert config.category_to_occ3d("not.a.category") == 0
+    assert np.array_equal(occ3d.map_lidarseg(raw), want)
+    assert occ3d.category_to_occ3d("vehicle.car") == 4
+    assert occ3d.category_to_occ3d("human.pedestrian.adult") == 7
+    assert occ3d.category_to_occ3d("not.a.category") == 0
 
 
 def test_quaternion_round_trip_and_inverse():
@@ -57,7 +57,8 @@ def test_yaw_quaternion_rotates_x_to_y():
 
 
 def test_default_rig_projects_forward_point_to_front_camera_centre():
-    from occflownet.rig import calibration_arrays, default_rig
+    from occflownet.contract import calibration_arrays
+    from occflownet.rig import default_rig
 
     K, T = calibration_arrays(default_rig(800, 450))
     p_ego = np.array([20.0, 0.0, 1.51, 1.0])
@@ -71,7 +72,8 @@ def test_default_rig_projects_forward_point_to_front_camera_centre():
 def test_calibration_errors_are_clear():
     import pytest
 
-    from occflownet.rig import calibration_arrays, default_rig
+    from occflownet.contract import calibration_arrays
+    from occflownet.rig import default_rig
 
     calib = default_rig()
     del calib["cameras"]["CAM_BACK"]

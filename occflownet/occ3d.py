@@ -1,4 +1,4 @@
-"""Core constants of occflownet: the voxel grid, the Occ3D class table, the lidarseg mapping, cameras.
+"""The Occ3D-nuScenes definitions: the voxel grid, the class table and colours, the lidarseg mapping, sensor names.
 
 One source of truth, imported everywhere (training, export, serving metadata, the synthetic world).
 This module imports numpy only, so ``serve/`` may use it without pulling in torch.

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config import GRID, Grid
+from ..occ3d import GRID, Grid
 from ..geometry import quaternion_to_matrix
 
 MARGIN_SCALE = 1.15  # official wlh_factor

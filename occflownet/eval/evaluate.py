@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.config import GRID
+from occflownet.occ3d import GRID
 from occflownet.data.index import SampleIndex, load_index
 from occflownet.data.loaders import load_occupancy, load_sample_images
 from occflownet.data.tables import DatasetError
@@ -64,7 +64,7 @@ def checkpoint_predictor(path) -> Predictor:
 def onnx_predictor(path, threads: int | None = None) -> Predictor:
     """An exported model run by onnxruntime (``threads`` intra-op threads, default all cores); no torch import.
     FileNotFoundError / ValueError naming the file if it is missing or cannot be loaded."""
-    from occflownet.inference_io import create_session, run_session
+    from occflownet.contract import create_session, run_session
 
     session = create_session(path, threads)
     return lambda images, intrinsics, cam2ego: run_session(session, images, intrinsics, cam2ego)

@@ -1,0 +1,186 @@
+"""Calibration JSON: strict validation and the one intrinsics-rescaling rule (pixel centres). Numpy only.
+
+Format and rule: :mod:`occflownet.contract` and docs/contracts.md.
+"""
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from occflownet.occ3d import CAMERAS
+
+ASPECT_TOLERANCE = 0.01          # relative difference of w/h allowed when rescaling intrinsics
+ORTHONORMAL_TOLERANCE = 1e-3     # max |RᵀR − I| of a cam2ego rotation
+SINGULAR_TOLERANCE = 1e-9        # |det K| below this is singular
+
+
+class CalibrationError(ValueError):
+    """A calibration is unusable (or cannot describe the given images); the message names the camera and field."""
+
+
+class MissingCalibrationField(CalibrationError, KeyError):
+    """A camera or field is missing (also a KeyError, for callers that catch lookups)."""
+
+    __str__ = BaseException.__str__       # not KeyError's quoted repr
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A validated calibration for ``cameras`` (in input order).
+
+    intrinsics float64 [V, 3, 3] (pixels, for ``image_sizes[i]``), cam2ego float64 [V, 4, 4] (camera → ego frame),
+    image_sizes: per camera the (w, h) the intrinsics are for, or None = for the images as they come."""
+
+    cameras: tuple[str, ...]
+    intrinsics: np.ndarray
+    cam2ego: np.ndarray
+    image_sizes: tuple[tuple[int, int] | None, ...]
+
+    def arrays_for(self, sizes: Sequence[tuple[int, int]], source: str = "the calibration",
+                   remedy: str = "a calibration") -> tuple[np.ndarray, np.ndarray]:
+        """(intrinsics float32 [V, 3, 3] for each camera's actual image size (w, h) in ``sizes``, cam2ego float32
+        [V, 4, 4]): intrinsics rescaled by the pixel-centre rule where a camera's calibrated size differs.
+        CalibrationError naming the camera when the aspect ratio differs (``source`` names the calibration,
+        ``remedy`` what the user should send instead)."""
+        if len(sizes) != len(self.cameras):
+            raise ValueError(f"need {len(self.cameras)} image sizes, got {len(sizes)}")
+        K = [rescale_intrinsics(k, size, (int(w), int(h)), camera=name, source=source, remedy=remedy)
+             for name, k, size, (w, h) in zip(self.cameras, self.intrinsics, self.image_sizes, sizes)]
+        return np.stack(K).astype(np.float32), self.cam2ego.astype(np.float32)
+
+
+def parse_calibration_json(data: bytes | str, source: str = "calibration") -> dict:
+    """Calibration JSON text/bytes → dict (a JSON object). CalibrationError naming ``source`` otherwise."""
+    try:
+        calib = json.loads(data.decode("utf-8") if isinstance(data, bytes) else data)
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise CalibrationError(f"{source} is not valid UTF-8 JSON: {exc}") from None
+    if not isinstance(calib, dict):
+        raise CalibrationError(f"{source} must be a JSON object with a 'cameras' object")
+    return calib
+
+
+def load_calibration(path: str | Path, cameras: Sequence[str] = CAMERAS) -> dict:
+    """Read and validate a calibration JSON file → the dict. FileNotFoundError, or CalibrationError whose message
+    starts with the file name."""
+    path = Path(path)
+    try:
+        text = path.read_bytes()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"calibration file not found: {path}") from None
+    calib = parse_calibration_json(text, str(path))
+    try:
+        validate_calibration(calib, cameras)
+    except CalibrationError as exc:
+        raise type(exc)(f"{path}: {exc}") from None
+    return calib
+
+
+def _matrix(value, shape: tuple[int, int], where: str) -> np.ndarray:
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{where} must be a {shape[0]}x{shape[1]} array of numbers") from None
+    if m.shape != shape:
+        raise CalibrationError(f"{where} must be {shape[0]}x{shape[1]}, got shape {list(m.shape)}")
+    if not np.isfinite(m).all():
+        raise CalibrationError(f"{where} contains NaN or inf")
+    return m
+
+
+def _image_size(value, where: str) -> tuple[int, int]:
+    try:
+        w, h = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{where} must be [width, height]") from None
+    if not (w >= 1 and h >= 1 and w == int(w) and h == int(h)):
+        raise CalibrationError(f"{where} must be two positive integers, got {value}")
+    return int(w), int(h)
+
+
+def validate_calibration(calib: Mapping, cameras: Sequence[str] = CAMERAS) -> Calibration:
+    """Check calibration JSON for ``cameras`` (in order) → :class:`Calibration`.
+
+    Per camera: ``intrinsic`` 3×3 finite, non-singular, last row [0, 0, 1], fx, fy > 0; ``cam2ego`` 4×4 finite,
+    last row [0, 0, 0, 1], rotation orthonormal (within 1e-3) with det +1; optional ``image_size`` [w, h]
+    (positive integers), else the top-level one. Raises CalibrationError (MissingCalibrationField for a missing
+    camera or field) naming the camera and the field."""
+    if not isinstance(calib, Mapping):
+        raise CalibrationError("calibration must be a JSON object with a 'cameras' object")
+    cams = calib.get("cameras")
+    if not isinstance(cams, Mapping):
+        raise MissingCalibrationField("calibration has no 'cameras' object")
+    top = _image_size(calib["image_size"], "calibration image_size") if "image_size" in calib else None
+    Ks, Ts, sizes = [], [], []
+    for name in cameras:
+        entry = cams.get(name)
+        if not isinstance(entry, Mapping):
+            raise MissingCalibrationField(f"calibration lacks camera {name} (has {sorted(cams)})")
+        for key in ("intrinsic", "cam2ego"):
+            if key not in entry:
+                raise MissingCalibrationField(f"calibration of {name} lacks '{key}'")
+        K = _matrix(entry["intrinsic"], (3, 3), f"{name} intrinsic")
+        det = np.linalg.det(K)
+        if abs(det) < SINGULAR_TOLERANCE:
+            raise CalibrationError(f"{name} intrinsic is singular (determinant {det:.3g})")
+        if not np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-6):
+            raise CalibrationError(f"{name} intrinsic last row must be [0, 0, 1], got {K[2].tolist()}")
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise CalibrationError(f"{name} intrinsic focal lengths must be positive, got fx={K[0, 0]}, "
+                                   f"fy={K[1, 1]}")
+        T = _matrix(entry["cam2ego"], (4, 4), f"{name} cam2ego")
+        if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+            raise CalibrationError(f"{name} cam2ego last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+        R = T[:3, :3]
+        if np.abs(R.T @ R - np.eye(3)).max() > ORTHONORMAL_TOLERANCE or np.linalg.det(R) <= 0:
+            raise CalibrationError(f"{name} cam2ego rotation is not a proper rotation (orthonormal, det +1)")
+        Ks.append(K)
+        Ts.append(T)
+        sizes.append(_image_size(entry["image_size"], f"{name} image_size") if "image_size" in entry else top)
+    return Calibration(tuple(cameras), np.stack(Ks), np.stack(Ts), tuple(sizes))
+
+
+# ----------------------------------------------------------------------------------------------- rescaling
+def resize_matrix(sx: float, sy: float) -> np.ndarray:
+    """float64 [3, 3] A with K' = A·K for an image resized by (sx, sy): pixel centres map u' = (u + 0.5)·s − 0.5."""
+    return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+
+
+def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """Intrinsics [..., 3, 3] of an image resized by (sx, sy) (width, height ratios), pixel-centre rule:
+    fx' = fx·sx, skew' = skew·sx, cx' = (cx + 0.5)·sx − 0.5; fy' = fy·sy, cy' = (cy + 0.5)·sy − 0.5 (float64)."""
+    return resize_matrix(sx, sy) @ np.asarray(K, dtype=np.float64)
+
+
+def rescale_intrinsics(K: np.ndarray, from_size: tuple[int, int] | None, to_size: tuple[int, int],
+                       camera: str = "camera", source: str = "the calibration", remedy: str = "a calibration"
+                       ) -> np.ndarray:
+    """K [3, 3] for images of ``from_size`` (w, h) → K for ``to_size`` (float64); unchanged when ``from_size`` is
+    None (the intrinsics are for the images as they come) or equal. CalibrationError naming the camera when the
+    aspect ratios differ by more than ASPECT_TOLERANCE."""
+    K = np.asarray(K, dtype=np.float64)
+    if from_size is None or tuple(from_size) == tuple(to_size):
+        return K
+    (W, H), (w, h) = from_size, to_size
+    if abs((w / h) / (W / H) - 1.0) > ASPECT_TOLERANCE:
+        raise CalibrationError(
+            f"{camera}: image is {w}x{h} but {source} is for {W}x{H} (aspect ratio {w / h:.3f} vs {W / H:.3f}); "
+            f"send {remedy} with intrinsics for {w}x{h} images")
+    return scale_intrinsics(K, w / W, h / H)
+
+
+def calibration_arrays(calib: Mapping, width: int | None = None, height: int | None = None,
+                       cameras: Sequence[str] = CAMERAS, source: str = "the calibration"
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Calibration JSON → (intrinsics float32 [V, 3, 3], cam2ego float32 [V, 4, 4]) in ``cameras`` order, for
+    images of ``width × height`` (rescaled by the pixel-centre rule where the calibration states another size of the
+    same aspect ratio), or as stated when no size is given. Raises CalibrationError (see validate_calibration,
+    rescale_intrinsics)."""
+    cal = validate_calibration(calib, cameras)
+    if width is None or height is None:
+        return cal.intrinsics.astype(np.float32), cal.cam2ego.astype(np.float32)
+    return cal.arrays_for([(int(width), int(height))] * len(cameras), source)
