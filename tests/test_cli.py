@@ -16,3 +16,11 @@ def test_help_runs_without_torch():
 
 def test_parser_builds():
     assert "synth" in build_parser().format_help()
+
+
+def test_model_source_presets_are_the_model_presets():
+    from occflownet.commands.model_source import PRESET_NAMES
+    from occflownet.model.presets import PRESETS
+
+    assert set(PRESET_NAMES) == set(PRESETS)
+

@@ -14,7 +14,7 @@ def test_synth_command_writes_dataset_and_previews(tmp_path, capsys):
     previews = sorted((out / "preview").glob("*.png"))
     assert len(previews) == 2
     img = cv2.imread(str(previews[0]))
-    assert img.shape == (2 * 54 + 44, 3 * 96 + 2 * 54, 3)
+    assert img.shape == (2 * 54 + 50, 3 * 96 + 2 * 54, 3)   # two camera rows over a two-row class legend
     assert len(list((out / "samples" / "CAM_FRONT").glob("*.jpg"))) == 2
     # an existing dataset is not overwritten silently
     assert main(args) == 2

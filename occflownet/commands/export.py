@@ -1,16 +1,13 @@
 """`occflownet export`: export a model to ONNX (contract v1) with a torch ↔ onnxruntime parity check."""
 import sys
 
+from occflownet.commands.model_source import add_model_source, source_problem
+
 HELP = "export a model to ONNX with parity check"
 
 
 def add_arguments(parser):
-    src = parser.add_mutually_exclusive_group(required=True)
-    src.add_argument("--checkpoint", help="torch checkpoint written by `occflownet train`")
-    src.add_argument("--preset", choices=("tiny", "base", "paper"), help="randomly initialised preset "
-                     "(needs --random-init)")
-    parser.add_argument("--random-init", action="store_true", help="with --preset: random weights from --seed")
-    parser.add_argument("--seed", type=int, default=0, help="seed for --random-init (default 0)")
+    add_model_source(parser)
     parser.add_argument("--out", required=True, help="output .onnx file (written only if every check passes)")
     parser.add_argument("--parity-frame", action="append", default=[], metavar="DIR",
                         help="extra parity sample: a folder with six CAM_*.jpg and calib.json (repeatable)")
@@ -20,8 +17,9 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    if args.preset and not args.random_init:
-        print("occflownet export: --preset needs --random-init (or use --checkpoint)", file=sys.stderr)
+    problem = source_problem(args)
+    if problem:
+        print(f"occflownet export: {problem}", file=sys.stderr)
         return 2
     from occflownet.export.onnx_export import ExportError, export_model
     from occflownet.model import CheckpointError

@@ -5,17 +5,13 @@
 """
 import sys
 
+from occflownet.commands.model_source import add_model_source, source_problem
+
 HELP = "predict occupancy for one set of six images"
 
 
 def add_arguments(parser):
-    src = parser.add_mutually_exclusive_group(required=True)
-    src.add_argument("--model", help="exported ONNX model (onnxruntime only, no torch needed)")
-    src.add_argument("--checkpoint", help="torch checkpoint written by `occflownet train`")
-    src.add_argument("--preset", choices=("tiny", "base", "paper"), help="randomly initialised preset "
-                     "(needs --random-init)")
-    parser.add_argument("--random-init", action="store_true", help="with --preset: random weights from --seed")
-    parser.add_argument("--seed", type=int, default=0, help="seed for --random-init (default 0)")
+    add_model_source(parser, onnx=True)
     parser.add_argument("--images", required=True, help="folder with CAM_FRONT.jpg ... CAM_BACK_RIGHT.jpg")
     parser.add_argument("--calib", required=True, help="calibration JSON (per camera intrinsic + cam2ego)")
     parser.add_argument("--out", required=True, help="output .npz (occupancy uint8, density float32)")
@@ -29,8 +25,9 @@ def run(args) -> int:
     from occflownet import contract, pictures, predict
     from occflownet.occ3d import CLASS_NAMES, FREE
 
-    if args.preset and not args.random_init:
-        print("occflownet predict: --preset needs --random-init (or use --checkpoint / --model)", file=sys.stderr)
+    problem = source_problem(args)
+    if problem:
+        print(f"occflownet predict: {problem}", file=sys.stderr)
         return 2
     try:
         images = predict.load_image_folder(args.images)

@@ -1,8 +1,7 @@
 """`occflownet prepare`: build the sample index of a nuScenes-format root, count classes, precompute flow.
 
-Writes DATAROOT/occflownet/<version>/index.npz + index.json once; later commands load it (fast).
-Re-running is idempotent: the index is rebuilt from the tables (same content), and the class counts are reused
-when neither the index nor the counted split nor the ray settings changed (``--recount`` forces a recount).
+The work is :func:`occflownet.data.prepare.prepare`; this module parses the arguments and prints. Re-running is
+idempotent; ``--recount`` forces a recount of the classes.
 """
 import sys
 
@@ -27,68 +26,27 @@ def add_arguments(parser):
 
 
 def run(args) -> int:
-    import hashlib
-    import json
-
-    from occflownet.data.builder import build_index
-    from occflownet.data.class_weights import compute_class_stats
-    from occflownet.data.index import index_dir, save_index
-    from occflownet.data.rays import RayBuilder, RayConfig
+    from occflownet.data.prepare import UnknownSplit, prepare
     from occflownet.data.tables import DatasetError
 
     print(f"reading the tables under {args.dataroot} ...", file=sys.stderr)
     try:
-        index = build_index(args.dataroot, args.version, verify_files=args.verify_files)
+        result = prepare(args.dataroot, args.version, args.split, verify_files=args.verify_files,
+                         recount=args.recount, flow_horizon=args.flow_horizon,
+                         class_counts=not args.skip_class_counts, progress=not args.quiet, on_index=_print_summary)
+    except UnknownSplit as e:
+        print(f"occflownet prepare: {e}", file=sys.stderr)
+        return 2
     except DatasetError as e:
         print(f"occflownet prepare: {e}", file=sys.stderr)
         return 1
-    _print_summary(index)
-
-    if not args.skip_class_counts:
-        split = args.split or ("train" if "train" in index.splits else "all")
-        if split not in index.splits:
-            print(f"occflownet prepare: unknown split {split!r}; available: {', '.join(index.available_splits())}",
-                  file=sys.stderr)
-            return 2
-        config = RayConfig()
-        digest = hashlib.sha256()
-        for name in sorted(index.arrays):
-            digest.update(name.encode() + index.arrays[name].tobytes())
-        digest.update(json.dumps([split, index.splits[split], config.min_depth, config.ignored_raw_labels]).encode())
-        fingerprint = digest.hexdigest()
-        previous = _previous_meta(index_dir(args.dataroot, index.version))
-        if not args.recount and previous.get("class_stats_fingerprint") == fingerprint and "class_stats" in previous:
-            index.meta["class_stats"] = previous["class_stats"]
-            print(f"class counts: up to date (split {split}), reused", file=sys.stderr)
-        else:
-            try:
-                stats = compute_class_stats(RayBuilder(index, args.dataroot, config, cache_size=0), split,
-                                            progress=not args.quiet)
-            except DatasetError as e:
-                print(f"occflownet prepare: {e}", file=sys.stderr)
-                return 1
-            index.meta["class_stats"] = stats.to_dict()
-        index.meta["class_stats_fingerprint"] = fingerprint
-        _print_class_stats(index.class_stats)
-
-    out = save_index(index, args.dataroot)
-    print(f"index written to {out}")
-
-    # Occupancy flow of dynamic boxes, written beside the index (versioned by FLOW_FORMAT_VERSION).
-    from occflownet.data.flow import precompute_flow
-
-    path = precompute_flow(index, args.dataroot, horizon=args.flow_horizon, progress=not args.quiet)
-    print(f"flow records written to {path}")
+    if result.counts_split is not None:
+        if result.counts_reused:
+            print(f"class counts: up to date (split {result.counts_split}), reused", file=sys.stderr)
+        _print_class_stats(result.index.class_stats)
+    print(f"index written to {result.index_dir}")
+    print(f"flow records written to {result.flow_path}")
     return 0
-
-
-def _previous_meta(folder) -> dict:
-    import json
-
-    try:
-        return json.loads((folder / "index.json").read_text())
-    except (OSError, ValueError):
-        return {}
 
 
 def _print_summary(index) -> None:

@@ -1,0 +1,166 @@
+"""The README's main job as library calls: synthetic world → prepare → train ``tiny`` for a bounded time → eval →
+export (with its parity check) → the side-by-side picture and an example folder for ``predict``.
+
+Every stage calls the same library function its command-line verb calls (``synth.generate``, ``data.prepare``,
+``train.train``, ``eval.evaluate``, ``export.export_model``) and announces the equivalent ``occflownet ...``
+command first, so the output doubles as a transcript of the workflow. Finished stages are reused on a re-run:
+the world is kept when it exists and training resumes from its last checkpoint.
+"""
+from __future__ import annotations
+
+import json
+import shlex
+import shutil
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from occflownet.data.index import load_index
+
+
+@dataclass(frozen=True)
+class QuickstartConfig:
+    out: str = "quickstart"          # folder for the world, the run, the model and the pictures
+    scenes: int = 3                  # synthetic scenes; the last one is the val split
+    frames: int = 16                 # keyframes per scene
+    seed: int = 0
+    train_minutes: float = 7.0       # training time budget
+    max_steps: int = 1000            # step cap (about the time budget on a 2-core CPU)
+    supervision: str = "3d"          # 3D labels: within minutes on a CPU the model closest to the street
+    voxel_mask: bool = True          # 3D voxel losses inside mask_camera (the quickest recipe measured)
+
+
+@dataclass(frozen=True)
+class QuickstartPaths:
+    """Where each stage writes; :meth:`under` lays them out below one folder."""
+
+    world: Path
+    run: Path
+    checkpoint: Path
+    predictions: Path
+    eval_json: Path
+    onnx: Path
+    picture: Path
+    example: Path
+
+    @classmethod
+    def under(cls, out: Path) -> QuickstartPaths:
+        return cls(world=out / "world", run=out / "run", checkpoint=out / "run" / "checkpoints" / "last.pt",
+                   predictions=out / "predictions", eval_json=out / "eval.json", onnx=out / "model.onnx",
+                   picture=out / "side_by_side.png", example=out / "example")
+
+
+def _announce(log: Callable[[str], None], n: int, argv: list[str]) -> None:
+    log(f"\n[{n}/5] occflownet {shlex.join(argv)}")
+
+
+def run_quickstart(cfg: QuickstartConfig = QuickstartConfig(),
+                   log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True)) -> dict:
+    """Run the five stages; returns {"paths": QuickstartPaths, "eval": the eval result, "minutes": wall time}.
+    Exceptions of a stage propagate (DatasetError, TrainingError, ExportError, ValueError, OSError ...) after
+    ``log`` was told which stage failed."""
+    paths = QuickstartPaths.under(Path(cfg.out).resolve())
+    t0 = time.monotonic()
+    stages = (("synth", _synth), ("prepare", _prepare), ("train", _train), ("eval", _eval), ("export", _export))
+    result = {}
+    for n, (name, stage) in enumerate(stages, 1):
+        try:
+            result[name] = stage(cfg, paths, lambda argv: _announce(log, n, argv))
+        except Exception:
+            log(f"quickstart: stage `{name}` failed; fix the error and re-run (finished stages are reused: the "
+                "world is kept and training resumes)")
+            raise
+    write_example(paths.world, paths.example)
+    write_picture(paths.world, paths.predictions, paths.picture)
+    return {"paths": paths, "eval": result["eval"], "minutes": (time.monotonic() - t0) / 60}
+
+
+def _synth(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
+    from occflownet.synth.generate import generate
+
+    argv = ["synth", "--out", str(paths.world), "--scenes", str(cfg.scenes), "--frames", str(cfg.frames),
+            "--seed", str(cfg.seed), "--preview"]
+    if (paths.world / "v1.0-trainval" / "sample.json").is_file():
+        announce(argv[:3] + ["(exists, reused)"])
+        return
+    announce(argv)
+    generate(paths.world, scenes=cfg.scenes, frames=cfg.frames, seed=cfg.seed, preview=True)
+
+
+def _prepare(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
+    from occflownet.data.prepare import prepare
+
+    announce(["prepare", "--dataroot", str(paths.world)])
+    prepare(paths.world, progress=True)
+
+
+def _train(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> Path:
+    from occflownet.train.loop import train
+    from occflownet.train.recipe import TrainConfig
+
+    announce(["train", "--preset", "tiny", "--dataroot", str(paths.world), "--out", str(paths.run), "--split",
+              "train", "--supervision", cfg.supervision, "--flow" if cfg.supervision != "3d" else "--no-flow",
+              "--time-limit", str(cfg.train_minutes * 60), "--max-steps", str(cfg.max_steps), "--resume",
+              "--seed", str(cfg.seed), "--voxel-mask" if cfg.voxel_mask else "--no-voxel-mask"])
+    train_cfg = TrainConfig(preset="tiny", dataroot=str(paths.world), out=str(paths.run),
+                            version=load_index(paths.world, None, check_tables=False).version, split="train",
+                            supervision=cfg.supervision, flow=cfg.supervision != "3d",
+                            time_limit_s=cfg.train_minutes * 60, max_steps=cfg.max_steps, seed=cfg.seed,
+                            voxel_mask=cfg.voxel_mask)
+    return train(train_cfg, resume=True, progress=True)
+
+
+def _eval(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> dict:
+    from occflownet.eval import dumps_json, format_table
+    from occflownet.eval.evaluate import checkpoint_predictor, evaluate, select_samples
+
+    announce(["eval", "--checkpoint", str(paths.checkpoint), "--dataroot", str(paths.world), "--split", "val",
+              "--save-predictions", str(paths.predictions), "--output", str(paths.eval_json)])
+    result = evaluate(select_samples(paths.world, None, "val"), checkpoint_predictor(paths.checkpoint),
+                      save_predictions=paths.predictions)
+    result = {"source": str(paths.checkpoint), "source_kind": "checkpoint", **result}
+    print(format_table(result), file=sys.stderr)
+    paths.eval_json.write_text(dumps_json(result) + "\n")
+    return result
+
+
+def _export(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
+    from occflownet.export.onnx_export import export_model
+    from occflownet.predict import model_from_source
+
+    announce(["export", "--checkpoint", str(paths.checkpoint), "--out", str(paths.onnx)])
+    model = model_from_source(paths.checkpoint)
+    print(export_model(model, model.cfg, paths.onnx).summary(), file=sys.stderr)
+
+
+def first_val_sample(world: Path):
+    """The first keyframe of the val split of ``world`` (a SampleRecord)."""
+    index = load_index(world)
+    return index[int(index.split_positions("val")[0])]
+
+
+def write_picture(world: Path, predictions: Path, path: Path) -> Path:
+    """The side-by-side picture (:mod:`occflownet.eval.picture`) of the first val keyframe's saved prediction."""
+    from occflownet.eval.picture import sample_side_by_side
+    from occflownet.pictures import save_png
+
+    sample = first_val_sample(world)
+    with np.load(predictions / f"{sample.token}.npz") as z:
+        occupancy = z["occupancy"]
+    return save_png(path, sample_side_by_side(world, sample, occupancy))
+
+
+def write_example(world: Path, folder: Path) -> Path:
+    """Copy the six images of the first val keyframe to ``folder/CAM_*.jpg`` with its ``calib.json`` (intrinsics
+    and cam2ego as the index holds them), the input ``occflownet predict`` takes."""
+    sample = first_val_sample(world)
+    folder.mkdir(parents=True, exist_ok=True)
+    for cam in sample.cameras:
+        shutil.copyfile(world / cam.path, folder / f"{cam.name}.jpg")
+    cams = {c.name: {"intrinsic": c.intrinsic.tolist(), "cam2ego": c.sensor2ego.tolist()} for c in sample.cameras}
+    (folder / "calib.json").write_text(json.dumps({"cameras": cams, "sample_token": sample.token}, indent=1))
+    return folder
