@@ -22,21 +22,17 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=2)
     args = ap.parse_args()
 
+    from dataclasses import replace
+
+    from occflownet.eval.evaluate import checkpoint_predictor, predictions, select_samples
     from occflownet.occ3d import FREE
-    from occflownet.data.loaders import load_occupancy, load_sample_images
-    from occflownet.eval.evaluate import checkpoint_predictor, select_samples
 
     samples = select_samples(args.dataroot, split=args.split)
-    predict = checkpoint_predictor(args.checkpoint)
+    samples = replace(samples, positions=samples.positions[::args.every])
     tp, fp, fn = (np.zeros(len(TAUS)) for _ in range(3))
-    for position in samples.positions[::args.every]:
-        sample = samples.index[int(position)]
-        images = load_sample_images(samples.dataroot, sample)[None]
-        _, density = predict(images, sample.intrinsics[None].astype(np.float32),
-                             sample.cam2current_ego()[None].astype(np.float32))
-        labels = load_occupancy(samples.dataroot, sample.occupancy_path)
+    for _, _, _, density, labels in predictions(samples, checkpoint_predictor(args.checkpoint)):
         mask = labels.mask_camera.astype(bool)
-        occupied, sigma = (labels.semantics != FREE)[mask], np.asarray(density)[0][mask]
+        occupied, sigma = (labels.semantics != FREE)[mask], density[mask]
         for i, tau in enumerate(TAUS):
             pred = sigma >= tau
             tp[i] += np.sum(pred & occupied)

@@ -171,10 +171,6 @@ def _checked_outputs(out, batch: _Loaded) -> tuple[np.ndarray, np.ndarray]:
     return occupancy.astype(np.uint8, copy=False), density.astype(np.float32, copy=False)
 
 
-def _save(out_dir: Path, token: str, occupancy: np.ndarray, density: np.ndarray) -> None:
-    np.savez_compressed(out_dir / f"{token}.npz", occupancy=occupancy, density=density)
-
-
 def _fog_rays(samples: EvalSamples, fog_horizon: int | None):
     """The RayBuilder whose camera rays define the fog metric's 'crossed' voxels (training rays, t ∈ [-O, O]), or
     None when fog is off or the split has no lidarseg labels to build rays from."""
@@ -183,6 +179,97 @@ def _fog_rays(samples: EvalSamples, fog_horizon: int | None):
     if fog_horizon is None or any(samples.index[int(p)].lidarseg_path is None for p in samples.positions):
         return None
     return RayBuilder(samples.index, samples.dataroot, RayConfig(horizon=fog_horizon), cache_size=2 * fog_horizon + 2)
+
+
+class _Metrics:
+    """The metrics of one run, updated per sample: Occ3D mIoU always, RayIoU and fog when asked."""
+
+    def __init__(self, samples: EvalSamples, rayiou: bool, fog_horizon: int | None):
+        self.samples = samples
+        self.occupancy = OccupancyMetric()
+        self.rayiou = RayIoUMetric() if rayiou else None
+        self.fog_rays = _fog_rays(samples, fog_horizon)
+        self.fog = FogMetric() if self.fog_rays is not None else None
+
+    def update(self, position: int, token: str, occupancy: np.ndarray, gt) -> None:
+        """One sample: ``occupancy`` uint8 [200, 200, 16] against its labels ``gt`` (an Occupancy); a ValueError
+        names the sample."""
+        try:
+            self.occupancy.update(occupancy, gt.semantics, gt.mask_camera)
+            if self.rayiou is not None:
+                arrays = self.samples.index.arrays
+                start, stop = self.samples.index.scene_range(position)
+                origins = scene_ray_origins(arrays["lidar_sensor2ego"][start:stop],
+                                            arrays["lidar_ego2global"][start:stop], position - start)
+                self.rayiou.update(occupancy, gt.semantics, origins)
+            if self.fog is not None:
+                rays = self.fog_rays.rays(position)
+                self.fog.update(occupancy, gt.semantics, gt.mask_camera,
+                                crossed_voxels(rays.origins, rays.directions, rays.depths))
+        except ValueError as exc:
+            raise ValueError(f"sample {token}: {exc}") from exc
+
+    def compute(self) -> dict:
+        return {"occupancy": self.occupancy.compute(),
+                "rayiou": self.rayiou.compute() if self.rayiou is not None else None,
+                "fog": self.fog.compute() if self.fog is not None else None}
+
+
+class _PredictionWriter:
+    """Writes ``<token>.npz`` (occupancy uint8 [200, 200, 16], density float32 [200, 200, 16]) into a folder on a
+    background thread; nothing when the folder is None. A failed write is raised at the next :meth:`check`."""
+
+    def __init__(self, folder):
+        self.folder = Path(folder) if folder is not None else None
+        if self.folder is not None:
+            self.folder.mkdir(parents=True, exist_ok=True)
+        self.pool = ThreadPoolExecutor(max_workers=1)
+        self.pending = []
+
+    def save(self, token: str, occupancy: np.ndarray, density: np.ndarray) -> None:
+        if self.folder is not None:
+            self.pending.append(self.pool.submit(np.savez_compressed, self.folder / f"{token}.npz",
+                                                 occupancy=occupancy, density=density))
+
+    def check(self, wait: bool = False) -> None:
+        done = [f for f in self.pending if wait or f.done()]
+        for f in done:
+            f.result()
+        self.pending = [f for f in self.pending if f not in done]
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            if exc[0] is None:
+                self.check(wait=True)
+        finally:
+            self.pool.shutdown(wait=True)
+
+
+def predictions(samples: EvalSamples, predict: Predictor, batch_size: int = 1, timing: dict | None = None):
+    """Yield ``(position, token, occupancy uint8 [200, 200, 16], density float32 [200, 200, 16], labels)`` for
+    every sample, in order (``labels``: its Occupancy). Batches of ``batch_size`` (split where the image size
+    changes); the next batch loads on a background thread while the model runs. ``timing``, if given, gains the
+    seconds spent waiting for data (``"load"``) and in the model (``"predict"``)."""
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be at least 1, got {batch_size}")
+    timing = {"load": 0.0, "predict": 0.0} if timing is None else timing
+    batches = [samples.positions[i:i + batch_size] for i in range(0, len(samples), batch_size)]
+    with ThreadPoolExecutor(max_workers=1) as loader:
+        pending = loader.submit(_load, samples, batches[0])
+        for b in range(len(batches)):
+            t0 = time.perf_counter()
+            groups = pending.result()
+            timing["load"] += time.perf_counter() - t0     # time not hidden by the prefetch
+            if b + 1 < len(batches):
+                pending = loader.submit(_load, samples, batches[b + 1])
+            for batch in groups:
+                t0 = time.perf_counter()
+                occupancy, density = _checked_outputs(predict(batch.images, batch.intrinsics, batch.cam2ego), batch)
+                timing["predict"] += time.perf_counter() - t0
+                yield from zip(batch.positions, batch.tokens, occupancy, density, batch.labels)
 
 
 def evaluate(samples: EvalSamples, predict: Predictor, *, batch_size: int = 1, save_predictions=None,
@@ -205,64 +292,23 @@ def evaluate(samples: EvalSamples, predict: Predictor, *, batch_size: int = 1, s
     threads while the model and the metrics work."""
     from tqdm import tqdm
 
-    if batch_size < 1:
-        raise ValueError(f"batch_size must be at least 1, got {batch_size}")
-    out_dir = Path(save_predictions) if save_predictions is not None else None
-    if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    occ_metric, ray_metric = OccupancyMetric(), (RayIoUMetric() if rayiou else None)
-    fog_rays = _fog_rays(samples, fog_horizon)
-    fog_metric = FogMetric() if fog_rays is not None else None
-    lidar2ego, ego2global = samples.index.arrays["lidar_sensor2ego"], samples.index.arrays["lidar_ego2global"]
-    batches = [samples.positions[i:i + batch_size] for i in range(0, len(samples), batch_size)]
-    t_start, t_load, t_predict, t_metric = time.perf_counter(), 0.0, 0.0, 0.0
-    saves = []
-    with ThreadPoolExecutor(max_workers=1) as loader, ThreadPoolExecutor(max_workers=1) as writer, \
+    metrics = _Metrics(samples, rayiou, fog_horizon)
+    timing = {"load": 0.0, "predict": 0.0, "metric": 0.0}
+    t_start = time.perf_counter()
+    with _PredictionWriter(save_predictions) as writer, \
             tqdm(total=len(samples), desc="eval", unit="sample", file=sys.stderr, disable=not progress) as bar:
-        pending = loader.submit(_load, samples, batches[0])
-        for b in range(len(batches)):
+        for position, token, occupancy, density, gt in predictions(samples, predict, batch_size, timing):
+            writer.save(token, occupancy, density)
             t0 = time.perf_counter()
-            groups = pending.result()
-            t_load += time.perf_counter() - t0            # time spent waiting for data (not hidden by prefetch)
-            if b + 1 < len(batches):
-                pending = loader.submit(_load, samples, batches[b + 1])
-            for batch in groups:
-                t0 = time.perf_counter()
-                occupancy, density = _checked_outputs(predict(batch.images, batch.intrinsics, batch.cam2ego), batch)
-                t_predict += time.perf_counter() - t0
-                for i, (position, token, gt) in enumerate(zip(batch.positions, batch.tokens, batch.labels)):
-                    if out_dir is not None:
-                        saves.append(writer.submit(_save, out_dir, token, occupancy[i], density[i]))
-                    t0 = time.perf_counter()
-                    try:
-                        occ_metric.update(occupancy[i], gt.semantics, gt.mask_camera)
-                        if ray_metric is not None:
-                            start, stop = samples.index.scene_range(position)
-                            origins = scene_ray_origins(lidar2ego[start:stop], ego2global[start:stop],
-                                                        position - start)
-                            ray_metric.update(occupancy[i], gt.semantics, origins)
-                        if fog_metric is not None:
-                            rays = fog_rays.rays(position)
-                            fog_metric.update(occupancy[i], gt.semantics, gt.mask_camera,
-                                              crossed_voxels(rays.origins, rays.directions, rays.depths))
-                    except ValueError as exc:
-                        raise ValueError(f"sample {token}: {exc}") from exc
-                    t_metric += time.perf_counter() - t0
-                    bar.update(1)
-            written = [f for f in saves if f.done()]
-            for f in written:                                  # a failed write stops the run now
-                f.result()
-            saves = [f for f in saves if f not in written]
-        for f in saves:
-            f.result()
+            metrics.update(position, token, occupancy, gt)
+            timing["metric"] += time.perf_counter() - t0
+            writer.check()                                    # a failed write stops the run now
+            bar.update(1)
     seconds = time.perf_counter() - t_start
     return {
         "dataroot": str(samples.dataroot), "version": samples.index.version, "split": samples.split,
-        "samples": len(samples), "batch_size": batch_size,
-        "occupancy": occ_metric.compute(),
-        "rayiou": ray_metric.compute() if ray_metric is not None else None,
-        "fog": fog_metric.compute() if fog_metric is not None else None,
-        "timing": {"seconds": round(seconds, 3), "load_seconds": round(t_load, 3),
-                   "predict_seconds": round(t_predict, 3), "metric_seconds": round(t_metric, 3),
+        "samples": len(samples), "batch_size": batch_size, **metrics.compute(),
+        "timing": {"seconds": round(seconds, 3), "load_seconds": round(timing["load"], 3),
+                   "predict_seconds": round(timing["predict"], 3), "metric_seconds": round(timing["metric"], 3),
                    "samples_per_second": round(len(samples) / seconds, 3) if seconds > 0 else None},
     }
