@@ -102,25 +102,8 @@ def build_index(dataroot, version: str | None = None, verify_files: bool = False
     tables = load_tables(dataroot, version)
     version = tables.version
     keyframes = _keyframe_data(tables)
-    lidarseg = {}
-    if tables.has("lidarseg"):
-        for r in tables.records["lidarseg"]:
-            sd = field(r, "lidarseg", "sample_data_token")
-            if sd in lidarseg:
-                raise DatasetError(f"table 'lidarseg': two label files for sample_data {sd}")
-            lidarseg[sd] = field(r, "lidarseg", "filename")
-
-    samples_of_scene = defaultdict(list)
-    for r in tables.records["sample"]:
-        scene = field(r, "sample", "scene_token")
-        tables.get("scene", scene, f"sample {r.get('token')}")
-        samples_of_scene[scene].append(r)
-    boxes_of_sample = defaultdict(list)
-    for r in tables.records["sample_annotation"]:
-        boxes_of_sample[field(r, "sample_annotation", "sample_token")].append(r)
-    for token in boxes_of_sample:
-        tables.get("sample", token, f"sample_annotation of sample {token}")
-
+    lidarseg = _lidarseg_files(tables)
+    samples_of_scene, boxes_of_sample = _group_samples_and_boxes(tables)
     cols = defaultdict(list)
     instance_ids, category_ids = {}, {}
     scene_names, scene_tokens, scene_start = [], [], [0]
@@ -154,6 +137,33 @@ def build_index(dataroot, version: str | None = None, verify_files: bool = False
             shown = "\n  ".join(missing[:10])
             raise DatasetError(f"{len(missing)} file(s) referenced by {dataroot / version} are missing, e.g.:\n  {shown}")
     return index
+
+
+def _lidarseg_files(tables: Tables) -> dict[str, str]:
+    """{LiDAR sample_data token: lidarseg label file} (empty without the lidarseg table)."""
+    lidarseg = {}
+    if tables.has("lidarseg"):
+        for r in tables.records["lidarseg"]:
+            sd = field(r, "lidarseg", "sample_data_token")
+            if sd in lidarseg:
+                raise DatasetError(f"table 'lidarseg': two label files for sample_data {sd}")
+            lidarseg[sd] = field(r, "lidarseg", "filename")
+    return lidarseg
+
+
+def _group_samples_and_boxes(tables: Tables) -> tuple[dict, dict]:
+    """({scene token: [sample records]}, {sample token: [annotation records]}), each reference checked."""
+    samples_of_scene = defaultdict(list)
+    for r in tables.records["sample"]:
+        scene = field(r, "sample", "scene_token")
+        tables.get("scene", scene, f"sample {r.get('token')}")
+        samples_of_scene[scene].append(r)
+    boxes_of_sample = defaultdict(list)
+    for r in tables.records["sample_annotation"]:
+        boxes_of_sample[field(r, "sample_annotation", "sample_token")].append(r)
+    for token in boxes_of_sample:
+        tables.get("sample", token, f"sample_annotation of sample {token}")
+    return samples_of_scene, boxes_of_sample
 
 
 def _add_sensors(cols, tables: Tables, keyframes, token: str, scene: str, lidarseg: dict) -> None:
