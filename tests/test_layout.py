@@ -1,0 +1,212 @@
+"""The layout rules of the repository, checked on the source tree (docs/layout.md).
+
+- imports run along the data flow: every module belongs to one layer and imports only from its own layer or the
+  ones before it (core → synth → data → model → render → train → eval → predict → export → serve → quickstart →
+  commands → cli), and no two modules import each other, directly or through others;
+- no function is longer than 60 lines, except a numba kernel or one whose docstring gives the reason
+  (a line starting with ``Long:``);
+- the packages pyproject.toml installs are the package folders of the tree;
+- README.md's tour names every package and top-level module, and every path it names exists;
+- the documentation is self-contained (no pointer to notes outside the repository);
+- each contract has one definition: the ONNX tensor names and the HTTP error body are spelled out once.
+"""
+from __future__ import annotations
+
+import ast
+import re
+import tomllib
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE_DIRS = {"occflownet": REPO / "occflownet", "occflownet.export": REPO / "export",
+                "occflownet.serve": REPO / "serve"}
+MAX_LINES = 60
+
+# Layers in data-flow order; a module's layer is that of its longest matching prefix.
+LAYERS = (
+    ("core", ("occflownet", "occflownet.occ3d", "occflownet.geometry", "occflownet.rig", "occflownet.contract",
+              "occflownet.pictures", "occflownet.voxel_walk")),
+    ("synth", ("occflownet.synth",)),
+    ("data", ("occflownet.data",)),
+    ("model", ("occflownet.model",)),
+    ("render", ("occflownet.render",)),
+    ("train", ("occflownet.train",)),
+    ("eval", ("occflownet.eval",)),
+    ("predict", ("occflownet.predict",)),
+    ("export", ("occflownet.export",)),
+    ("serve", ("occflownet.serve",)),
+    ("quickstart", ("occflownet.quickstart",)),
+    ("commands", ("occflownet.commands",)),
+    ("cli", ("occflownet.cli", "occflownet.__main__")),
+)
+
+
+def _modules() -> dict[str, Path]:
+    """{dotted module name: file} of every module the package installs."""
+    out = {}
+    for package, folder in PACKAGE_DIRS.items():
+        for path in sorted(folder.rglob("*.py")):
+            rel = path.relative_to(folder).with_suffix("")
+            parts = [] if rel.parts == ("__init__",) else list(rel.parts)
+            if parts and parts[-1] == "__init__":
+                parts = parts[:-1]
+            if package == "occflownet" and parts and f"occflownet.{parts[0]}" in PACKAGE_DIRS:
+                continue                                        # a mapped package, listed under its own folder
+            out[".".join([package, *parts])] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _imports(name: str, path: Path) -> set[str]:
+    """The package modules ``name`` imports (at module level or inside functions)."""
+    is_package = path.name == "__init__.py"
+    base = name.split(".") if is_package else name.split(".")[:-1]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            candidates = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            module = node.module or ""
+            if node.level:
+                module = ".".join(base[:len(base) - node.level + 1] + ([module] if module else []))
+            candidates = [module] + [f"{module}.{a.name}" for a in node.names]
+        else:
+            continue
+        for c in candidates:
+            while c and c not in MODULES:                        # `import occflownet.data.index` → that module
+                c = c.rpartition(".")[0]
+            if c and c != name:
+                found.add(c)
+    return found
+
+
+GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
+
+
+def _layer(name: str) -> int:
+    best, rank = -1, None
+    for i, (_, prefixes) in enumerate(LAYERS):
+        for p in prefixes:
+            if (name == p or name.startswith(p + ".")) and len(p) > best:
+                best, rank = len(p), i
+    if rank is None:
+        raise AssertionError(f"{name} belongs to no layer: add it to LAYERS in tests/test_layout.py")
+    return rank
+
+
+def test_every_module_has_a_layer():
+    for name in MODULES:
+        _layer(name)
+
+
+def test_imports_run_along_the_data_flow():
+    wrong = [f"{a} ({LAYERS[_layer(a)][0]}) imports {b} ({LAYERS[_layer(b)][0]})"
+             for a, targets in GRAPH.items() for b in targets
+             if _layer(b) > _layer(a) and b != "occflownet"]
+    assert not wrong, "imports against the data flow:\n  " + "\n  ".join(sorted(wrong))
+
+
+def test_no_import_cycles():
+    state, cycles = {}, []
+
+    def visit(node, stack):
+        state[node] = "open"
+        for nxt in sorted(GRAPH[node]):
+            if nxt == "occflownet":                              # the package __init__ imports nothing
+                continue
+            if state.get(nxt) == "open":
+                cycles.append(" → ".join(stack[stack.index(nxt):] + [nxt]))
+            elif nxt not in state:
+                visit(nxt, stack + [nxt])
+        state[node] = "done"
+
+    for name in sorted(GRAPH):
+        if name not in state:
+            visit(name, [name])
+    assert not cycles, "import cycles:\n  " + "\n  ".join(cycles)
+
+
+def _python_files():
+    roots = [*PACKAGE_DIRS.values(), REPO / "benchmarks", REPO / "tests", REPO / "docker", REPO / "embed"]
+    return [p for root in roots for p in sorted(root.rglob("*.py")) if "build" not in p.parts]
+
+
+def _is_numba_kernel(fn: ast.FunctionDef) -> bool:
+    names = {ast.unparse(d.func if isinstance(d, ast.Call) else d) for d in fn.decorator_list}
+    return bool(names & {"njit", "numba.njit", "jit", "numba.jit"})
+
+
+def test_no_long_functions():
+    long = []
+    for path in _python_files():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                lines = node.end_lineno - node.lineno + 1
+                doc = ast.get_docstring(node) or ""
+                reason = any(line.strip().startswith("Long:") for line in doc.splitlines())
+                if lines > MAX_LINES and not _is_numba_kernel(node) and not reason:
+                    long.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({lines} lines)")
+    assert not long, f"functions over {MAX_LINES} lines without a 'Long:' reason:\n  " + "\n  ".join(long)
+
+
+def test_pyproject_installs_every_package_folder():
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = set(config["packages"])
+    on_disk = {name for name, path in MODULES.items() if path.name == "__init__.py"}
+    assert listed == on_disk
+    assert config["package-dir"] == {k: v.name for k, v in PACKAGE_DIRS.items() if k != "occflownet"}
+
+
+def _tour() -> list[str]:
+    text = (REPO / "README.md").read_text()
+    section = text.split("## Tour", 1)[1].split("\n## ", 1)[0]
+    return [p for row in section.splitlines() if row.startswith("| `")
+            for p in re.findall(r"`([^`]+)`", row.split("|")[1])]
+
+
+def test_readme_tour_matches_the_tree():
+    tour = _tour()
+    missing = [p for p in tour if not (REPO / p.rstrip("/")).exists()]
+    assert not missing, f"README tour names paths that do not exist: {missing}"
+    wanted = [f"{p.relative_to(REPO)}/" if p.is_dir() else str(p.relative_to(REPO))
+              for p in (REPO / "occflownet").iterdir()
+              if (p.is_dir() and (p / "__init__.py").exists()) or (p.suffix == ".py" and p.stem != "__init__")]
+    wanted += ["export/", "serve/", "docker/", "embed/", "benchmarks/"]
+    unnamed = [w for w in wanted if w not in tour and w.rstrip("/") not in tour
+               and w not in ("occflownet/__main__.py",)]
+    assert not unnamed, f"README tour does not name: {unnamed}"
+
+
+@pytest.mark.parametrize("pattern", [r"\.\./shared/docs", r"design notes", r"design\.md"])
+def test_docs_are_self_contained(pattern):
+    files = [*(REPO / "docs").glob("*.md"), REPO / "README.md", *_python_files()]
+    files += [p for p in (REPO / "docker").iterdir() if p.is_file()]
+    hits = [f"{p.relative_to(REPO)}" for p in files if p != Path(__file__) and re.search(pattern, p.read_text())]
+    assert not hits, f"{pattern!r} (outside the repository) in {hits}"
+
+
+@pytest.mark.parametrize("spelling", [
+    r"^INPUTS = ", r"^OUTPUTS = ", r"^METADATA_KEYS = ",              # ONNX contract v1: tensors, metadata
+    r"def (validate_calibration|scale_intrinsics|rescale_intrinsics)\(",   # calibration JSON and its rescaling
+    r"def (create_session|check_signature)\(",                       # the onnxruntime session and its check
+    r"^class ErrorResponse\b", r"def error_response\(",              # the HTTP error shape
+    r"def top_down\(",                                                # the top-down picture
+])
+def test_each_contract_has_one_definition(spelling):
+    sources = [p for p in _python_files() if "tests" not in p.relative_to(REPO).parts]
+    hits = [f"{p.relative_to(REPO)}: {m.group(0)}" for p in sources
+            for m in re.finditer(spelling, p.read_text(), re.MULTILINE)]
+    assert len({h.split(": ")[1] for h in hits}) == len(hits) and hits, hits
+
+
+def test_no_hand_built_error_bodies():
+    """Error responses come from the one error shape, never a dict literal with an "error" key."""
+    sources = [p for p in _python_files() if "tests" not in p.relative_to(REPO).parts]
+    hits = [f"{p.relative_to(REPO)}:{node.lineno}" for p in sources for node in ast.walk(ast.parse(p.read_text()))
+            if isinstance(node, ast.Dict) and any(isinstance(k, ast.Constant) and k.value == "error"
+                                                  for k in node.keys)]
+    assert not hits, hits
