@@ -206,7 +206,27 @@ def _write_sample(fx: Fixture, t: dict, si: int, k: int, tok: str, tokens: list,
                              "calibrated_sensor_token": token("calib", "RADAR_FRONT"), "timestamp": lidar_us,
                              "fileformat": "pcd", "is_key_frame": True, "height": 0, "width": 0,
                              "filename": f"samples/RADAR_FRONT/{scene}_{k}.pcd", "prev": "", "next": ""})
-    # LiDAR sweep and lidarseg labels
+    _write_lidar(fx, t, si, k, scene, lidar_us)
+    # boxes
+    for m in MOVERS:
+        box = mover_box(m, k * KEYFRAME_US / 1e6)
+        t["sample_annotation"].append({
+            "token": token(scene, k, m[0], "ann"), "sample_token": tok, "instance_token": token(scene, m[0]),
+            "translation": box[:3, 3].tolist(), "size": list(m[3]), "rotation": _quat(box),
+            "visibility_token": "4", "attribute_tokens": [], "num_lidar_pts": 120, "num_radar_pts": 0,
+            "prev": "", "next": ""})
+    # Occ3D labels for scene-a only
+    if scene == "scene-a" and images:
+        occ = fx.root / "gts" / scene / tok / "labels.npz"
+        occ.parent.mkdir(parents=True, exist_ok=True)
+        rng = np.random.default_rng(k)
+        sem = rng.integers(0, 18, (200, 200, 16)).astype(np.uint8)
+        np.savez(occ, semantics=sem, mask_lidar=(sem < 9).astype(np.uint8),
+                            mask_camera=(sem < 12).astype(np.uint8))
+
+
+def _write_lidar(fx: Fixture, t: dict, si: int, k: int, scene: str, lidar_us: int) -> None:
+    """The LiDAR sweep of keyframe k (in the LiDAR frame, with the ego-body points) and its lidarseg labels."""
     pts, raw = fx.points_global(si, k)
     lidar2global = ego_pose(si, lidar_us) @ LIDAR2EGO
     local = transform_points(invert(lidar2global), pts)
@@ -224,22 +244,6 @@ def _write_sample(fx: Fixture, t: dict, si: int, k: int, tok: str, tokens: list,
     (fx.root / seg).parent.mkdir(parents=True, exist_ok=True)
     raw.astype(np.uint8).tofile(fx.root / seg)
     t["lidarseg"].append({"token": lidar_sd, "sample_data_token": lidar_sd, "filename": seg})
-    # boxes
-    for m in MOVERS:
-        box = mover_box(m, k * KEYFRAME_US / 1e6)
-        t["sample_annotation"].append({
-            "token": token(scene, k, m[0], "ann"), "sample_token": tok, "instance_token": token(scene, m[0]),
-            "translation": box[:3, 3].tolist(), "size": list(m[3]), "rotation": _quat(box),
-            "visibility_token": "4", "attribute_tokens": [], "num_lidar_pts": 120, "num_radar_pts": 0,
-            "prev": "", "next": ""})
-    # Occ3D labels for scene-a only
-    if scene == "scene-a" and images:
-        occ = fx.root / "gts" / scene / tok / "labels.npz"
-        occ.parent.mkdir(parents=True, exist_ok=True)
-        rng = np.random.default_rng(k)
-        sem = rng.integers(0, 18, (200, 200, 16)).astype(np.uint8)
-        np.savez(occ, semantics=sem, mask_lidar=(sem < 9).astype(np.uint8),
-                            mask_camera=(sem < 12).astype(np.uint8))
 
 
 def _quat(T) -> list:
