@@ -9,7 +9,7 @@ import pytest
 from occflownet.occ3d import GRID, Grid
 from occflownet.eval import (RayIoUMetric, first_hits, lidar_ray_directions, ray_iou, scene_ray_origins,
                              to_json_ready)
-from occflownet.eval.ray_iou import _cast, _padded_codes, _reference_rays
+from occflownet.eval.ray_iou import _cast, _reference_rays
 from occflownet.geometry import make_transform, yaw_to_quaternion
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
@@ -120,7 +120,7 @@ def test_traversal_matches_reference_kernel_exactly_including_ties():
                          [-1, -1, -1]], dtype=float)
     origins, dirs = np.concatenate([origins, corner]), np.concatenate([dirs, tie_dirs])
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    cls, t = _cast(_padded_codes(vol), vol.shape, origins, dirs)
+    cls, t = _cast(vol, origins, dirs)
     for i in range(len(origins)):
         voxel, d = kernel_first_hit(occupied, origins[i], direction=dirs[i])
         assert cls[i] == vol[voxel], i
@@ -138,7 +138,7 @@ def test_tie_breaking_like_the_kernel():
     vol[10, 11, 4] = 7
     origin = np.array([[10.0, 10.0, 4.5]])
     direction = np.array([[1.0, 1.0, 0.0]]) / math.sqrt(2)
-    cls, _ = _cast(_padded_codes(vol), vol.shape, origin, direction)
+    cls, _ = _cast(vol, origin, direction)
     voxel, _ = kernel_first_hit(vol != FREE, origin[0], direction=direction[0])
     assert voxel == (10, 11, 4) and cls[0] == 7
 
@@ -151,7 +151,7 @@ def test_reference_ray_rounding_matches_kernel_on_the_lidar_pattern():
     origin = np.array([[0.98, 0.0, 1.84]])
     directions = lidar_ray_directions()[::23]  # 611 rays spread over all pitches and azimuths
     origin_vox, unit = _reference_rays(origin, directions.astype(np.float64), GRID)
-    cls, t = _cast(_padded_codes(vol), vol.shape, origin_vox, unit)
+    cls, t = _cast(vol, origin_vox, unit)
     lower = np.asarray(GRID.lower, dtype=np.float32).astype(np.float64)
     scale = np.float64(np.float32(0.4))
     o32 = ((origin[0] - lower) / scale).astype(np.float32)

@@ -1,54 +1,12 @@
-"""Voxel traversal (masks) and voxelisation against independent brute-force answers on small cases."""
+"""The camera mask and voxelisation against independent brute-force answers on small cases (the voxel walk
+itself: tests/test_voxel_walk.py)."""
 import numpy as np
 
 from occflownet.occ3d import FREE, Grid
 from occflownet.synth.frame import SensorRig, camera_mask, camera_rays, surface_rays
-from occflownet.synth.voxelize import traverse, voxelize
+from occflownet.synth.voxelize import voxelize
 from occflownet.synth.world import Boxes, GroundRaster, World
-
-
-def brute_force(origins, dirs, occupied, t_max, lower, vs):
-    """Per ray: every voxel whose box the ray segment [0, t_max) enters, in order of entry, up to and including
-    the first occupied one (slab test against each voxel separately)."""
-    X, Y, Z = occupied.shape
-    ijk = np.stack(np.meshgrid(np.arange(X), np.arange(Y), np.arange(Z), indexing="ij"), -1).reshape(-1, 3)
-    lo = np.asarray(lower) + ijk * vs
-    out = np.zeros(occupied.size, bool)
-    occ = occupied.reshape(-1)
-    for o, d, tm in zip(origins, dirs, t_max):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t1, t2 = (lo - o) / d, (lo + vs - o) / d
-        t_in, t_out = np.minimum(t1, t2).max(1), np.maximum(t1, t2).min(1)
-        hit = (t_in < t_out) & (t_out > 0) & (np.maximum(t_in, 0) < tm)
-        cand = np.nonzero(hit)[0]
-        for v in cand[np.argsort(np.maximum(t_in[cand], 0))]:
-            out[v] = True
-            if occ[v]:
-                break
-    return out.reshape(occupied.shape)
-
-
-def test_traverse_equals_brute_force():
-    rng = np.random.default_rng(3)
-    shape, lower, vs = (12, 9, 6), np.array([-2.0, -1.5, -1.0]), 0.5
-    occupied = rng.random(shape) < 0.07
-    n = 400
-    upper = lower + np.array(shape) * vs
-    origins = rng.uniform(lower - 2, upper + 2, (n, 3))  # inside and outside the grid
-    dirs = rng.normal(size=(n, 3)) * rng.uniform(0.2, 3.0, (n, 1))  # any length
-    dirs[:20, 2] = 0.0  # rays parallel to a grid plane
-    t_max = np.where(rng.random(n) < 0.4, rng.uniform(0.1, 4.0, n), np.inf)
-    got = traverse(origins, dirs, occupied, t_max, lower, vs)
-    want = brute_force(origins, dirs, occupied, t_max, lower, vs)
-    assert want.sum() > 100
-    assert np.array_equal(got, want), f"{(got & ~want).sum()} extra, {(want & ~got).sum()} missing voxels"
-
-
-def test_traverse_stops_at_first_occupied_voxel():
-    occupied = np.zeros((10, 1, 1), bool)
-    occupied[6] = True
-    got = traverse(np.array([[0.05, 0.5, 0.5]]), np.array([[1.0, 0.0, 0.0]]), occupied, None, (0, 0, 0), 1.0)
-    assert got[:, 0, 0].tolist() == [True] * 7 + [False] * 3
+from test_voxel_walk import brute_force
 
 
 def small_world(boxes: Boxes) -> World:

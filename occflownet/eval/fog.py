@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from occflownet.occ3d import FREE, GRID
-from occflownet.synth.voxelize import traverse
+from occflownet.voxel_walk import traverse
 
 _KEYS = ("voxels", "labelled", "predicted", "false_positive", "true_positive")
 

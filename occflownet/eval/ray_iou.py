@@ -32,9 +32,9 @@ import numpy as np
 from occflownet.occ3d import CLASS_NAMES, FREE, GRID, NUM_CLASSES, Grid
 from occflownet.eval.metrics import check_labels, nanmean
 from occflownet.geometry import invert
+from occflownet.voxel_walk import walk_rays
 
 THRESHOLDS_M: tuple[float, ...] = (1.0, 2.0, 4.0)
-_OUTSIDE = 254  # padding value around the volume: the ray has left the grid
 _MAX_ORIGINS = 8
 _ORIGIN_XY_LIMIT_M = 39.0
 
@@ -91,112 +91,16 @@ def scene_ray_origins(lidar2ego, ego2global, current: int, max_origins: int = _M
 # Voxel traversal
 
 
-def _padded_codes(volume: np.ndarray) -> np.ndarray:
-    """uint8 [X, Y, Z] classes → flat uint8 [(X+2)(Y+2)(Z+2) + 1]: the volume inside a one-voxel border of
-    ``_OUTSIDE`` plus one trailing FREE cell where finished rays are parked."""
-    X, Y, Z = volume.shape
-    padded = np.full((X + 2, Y + 2, Z + 2), _OUTSIDE, dtype=np.uint8)
-    padded[1:-1, 1:-1, 1:-1] = volume
-    return np.concatenate([padded.ravel(), np.array([FREE], dtype=np.uint8)])
-
-
-def _cast(codes: np.ndarray, shape: tuple[int, int, int], origin: np.ndarray, direction: np.ndarray
-          ) -> tuple[np.ndarray, np.ndarray]:
-    """Walk rays through a padded code volume (``_padded_codes``) in voxel units.
+def _cast(volume: np.ndarray, origin: np.ndarray, direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The reference kernel's walk: rays through a class volume uint8 [X, Y, Z] in voxel units.
 
     origin: float64 [R, 3] in voxel units (0 = the grid's lower corner); direction: float64 [R, 3], unit length
     in voxel units. Returns (class uint8 [R], t float64 [R]): the first voxel whose class is not FREE and the
     ray parameter (voxel units) where the ray leaves it; rays without a hit give (FREE, t where they leave the
-    grid), rays that never enter the grid (FREE, inf).
+    grid), rays that never enter the grid (FREE, inf). Ties go the kernel's way (``ties="last"``).
     """
-    with np.errstate(divide="ignore", invalid="ignore"):  # axis-parallel rays: x/0 = inf, inf - inf = NaN
-        return _walk(codes, shape, origin, direction)
-
-
-def _walk(codes, shape, origin, direction):
-    R = len(origin)
-    X, Y, Z = shape
-    size = np.array(shape, dtype=np.float64)
-    strides = np.array([(Y + 2) * (Z + 2), Z + 2, 1], dtype=np.int64)
-    park = len(codes) - 1
-    out_class = np.full(R, FREE, dtype=np.uint8)
-    out_t = np.full(R, np.inf)
-
-    # Entry into the grid (slab test): origins inside the grid start in their own voxel (t = 0), others at the
-    # point where they enter; t is always measured from the given origin.
-    zero = direction == 0
-    inside_slab = (origin >= 0) & (origin < size)
-    t0 = (0.0 - origin) / direction
-    t1 = (size - origin) / direction
-    t_near = np.where(zero, np.where(inside_slab, -np.inf, np.inf), np.minimum(t0, t1))
-    t_far = np.where(zero, np.where(inside_slab, np.inf, -np.inf), np.maximum(t0, t1))
-    t_enter = np.maximum(t_near.max(axis=1), 0.0)
-    enters = t_enter < t_far.min(axis=1)
-    start = np.where(t_enter[:, None] > 0, origin + direction * t_enter[:, None], origin)
-    voxel = np.clip(np.floor(start), 0, size - 1).astype(np.int64)
-
-    # Amanatides–Woo state, written exactly like the reference kernel (same double operations).
-    step = np.where(direction >= 0, 1, -1)
-    t_max = np.where(zero, np.inf, (voxel + (step > 0) - origin) / direction)
-    t_delta = np.where(zero, np.inf, step / direction)
-
-    ids = np.flatnonzero(enters)
-    flat = ((voxel[ids] + 1) * strides).sum(axis=1)
-    tx, ty, tz = (np.ascontiguousarray(t_max[ids, a]) for a in range(3))
-    dx, dy, dz = (np.ascontiguousarray(t_delta[ids, a]) for a in range(3))
-    sx, sy, sz = (np.ascontiguousarray(step[ids, a] * strides[a]) for a in range(3))
-    parked = 0
-    buf_a, buf_x, buf_y, buf_z = (np.empty(len(ids), dtype=bool) for _ in range(4))  # reused masks
-
-    for _ in range(X + Y + Z + 8):  # every step moves one voxel along one axis: bounded by the grid
-        if len(ids) == 0:
-            break
-        value = codes.take(flat, mode="clip")  # indices are always valid; 'clip' skips the checks
-        done = np.flatnonzero(value != FREE)
-        if done.size:
-            v = value[done]
-            hit = v != _OUTSIDE
-            t_exit = np.minimum(np.minimum(tx[done], ty[done]), tz[done])
-            # A ray that reached the border: the grid exit is the last boundary it crossed.
-            t_last = np.fmax(np.fmax(tx[done] - dx[done], ty[done] - dy[done]), tz[done] - dz[done])
-            out_class[ids[done]] = np.where(hit, v, FREE)
-            out_t[ids[done]] = np.where(hit, t_exit, t_last)
-            parked += done.size
-            if parked * 8 > len(ids):  # compact once an eighth of the rays are finished
-                keep = np.ones(len(ids), dtype=bool)
-                keep[done] = False
-                keep &= flat != park
-                ids, flat = ids[keep], flat[keep]
-                tx, ty, tz, dx, dy, dz = tx[keep], ty[keep], tz[keep], dx[keep], dy[keep], dz[keep]
-                sx, sy, sz = sx[keep], sy[keep], sz[keep]
-                parked = 0
-                if len(ids) == 0:
-                    break
-            else:
-                flat[done] = park
-                sx[done] = 0
-                sy[done] = 0
-                sz[done] = 0
-        # Axis to step, with the kernel's tie-breaking: x if tx<ty and tx<tz; else y if ty<tz (and not tx<ty);
-        # else z.
-        n = len(tx)
-        a, step_x, step_y, step_z = buf_a[:n], buf_x[:n], buf_y[:n], buf_z[:n]
-        np.less(tx, ty, out=a)
-        np.less(tx, tz, out=step_x)
-        step_x &= a
-        np.less(ty, tz, out=step_y)
-        np.greater(step_y, a, out=step_y)  # (ty < tz) and not (tx < ty)
-        np.logical_or(step_x, step_y, out=step_z)
-        np.logical_not(step_z, out=step_z)
-        np.add(tx, dx, out=tx, where=step_x)
-        np.add(ty, dy, out=ty, where=step_y)
-        np.add(tz, dz, out=tz, where=step_z)
-        np.add(flat, sx, out=flat, where=step_x)
-        np.add(flat, sy, out=flat, where=step_y)
-        np.add(flat, sz, out=flat, where=step_z)
-    else:
-        raise RuntimeError("voxel traversal did not terminate; this is a bug")
-    return out_class, out_t
+    walk = walk_rays(volume, origin, direction, empty=FREE, ties="last")
+    return walk.code, walk.t
 
 
 def first_hits(volume, origins, directions, grid: Grid = GRID) -> tuple[np.ndarray, np.ndarray]:
@@ -223,7 +127,7 @@ def first_hits(volume, origins, directions, grid: Grid = GRID) -> tuple[np.ndarr
     if not np.all(norm > 0) or not np.all(np.isfinite(directions)) or not np.all(np.isfinite(origins)):
         raise ValueError("directions must be finite and non-zero, origins finite")
     origin_vox = (origins - np.asarray(grid.lower)) / grid.voxel_size
-    cls, t = _cast(_padded_codes(volume), volume.shape, origin_vox, directions / norm)
+    cls, t = _cast(volume, origin_vox, directions / norm)
     return cls, t * grid.voxel_size
 
 
@@ -293,9 +197,9 @@ class RayIoUMetric:
         if not np.all(np.isfinite(origins)):
             raise ValueError("origins: not finite")
         origin_vox, direction = _reference_rays(origins, self.directions, self.grid)
-        gt_class, gt_t = _cast(_padded_codes(gt), gt.shape, origin_vox, direction)
+        gt_class, gt_t = _cast(gt, origin_vox, direction)
         keep = gt_class != FREE  # the reference evaluates only rays whose ground truth has a hit
-        pred_class, pred_t = _cast(_padded_codes(pred), pred.shape, origin_vox[keep], direction[keep])
+        pred_class, pred_t = _cast(pred, origin_vox[keep], direction[keep])
         scale = np.float32(self.grid.voxel_size)  # the reference: float32 distance * float32 voxel size
         self.add_rays(pred_class, pred_t.astype(np.float32) * scale, gt_class[keep],
                       gt_t[keep].astype(np.float32) * scale)

@@ -3,8 +3,8 @@ raster + yaw-oriented boxes) ray cast into six camera images and a 32-beam LiDAR
 and written in the exact nuScenes layout. See docs/synth.md.
 
 Public entry points: ``generate`` (write a dataset), ``build_world`` / ``WorldConfig`` (scene geometry),
-``render_keyframe`` / ``SensorRig`` (one keyframe in memory); ``occflownet.synth.voxelize.traverse``
-(voxel ray traversal).
+``render_keyframe`` / ``SensorRig`` (one keyframe in memory). The visibility masks walk rays with the shared
+``occflownet.voxel_walk.traverse``.
 Submodules import numpy only at top level; cv2 and tqdm are imported where files are written.
 """
 from occflownet.synth.frame import Keyframe, SensorRig, render_keyframe

@@ -19,8 +19,9 @@ from occflownet.rig import default_rig
 from occflownet.synth.camera import CameraRender, render_camera
 from occflownet.synth.layout import KEYFRAME_INTERVAL_S
 from occflownet.synth.lidar import LidarScan, LidarSpec, cast_lidar, default_lidar2ego
-from occflownet.synth.voxelize import traverse, voxelize
+from occflownet.synth.voxelize import voxelize
 from occflownet.synth.world import Boxes, World
+from occflownet.voxel_walk import traverse
 
 # Camera trigger time relative to the LiDAR keyframe [µs], camera order.
 CAMERA_OFFSETS_US = (2000, 10000, -10000, 35000, -27000, 27000)

@@ -1,12 +1,12 @@
-"""Occ3D ground truth from the world's geometry: semantics by voxelisation, visibility masks by ray traversal.
+"""Occ3D semantics from the world's geometry by voxelisation (the visibility masks: ``frame``).
 
 ``semantics``: a voxel takes the class of the geometry whose *surface* lies in it (it overlaps a box but is not
 wholly inside it, or the ground plane z = 0 passes through it): like Occ3D, whose labels come from LiDAR returns and
 reconstructed surfaces, the inside of a building or a car is free (and outside ``mask_camera``, which stops at the
 first occupied voxel). Where several overlap, ``materials.voxel_priority`` decides (objects win over
-ground and facades). ``traverse``: exact voxel walk (Amanatides & Woo) of many rays at once, marking every voxel a
-ray passes through up to and including the first occupied one. All arrays are indexed [x, y, z] in the ego frame
-of one keyframe, like Occ3D.
+ground and facades). The visibility masks walk rays through the result with ``occflownet.voxel_walk.traverse``
+(``frame.lidar_mask``, ``frame.camera_mask``). All arrays are indexed [x, y, z] in the ego frame of one keyframe,
+like Occ3D.
 """
 from __future__ import annotations
 
@@ -67,66 +67,3 @@ def _span(lo: float, hi: float, origin: float, vs: float, n: int) -> tuple[int, 
     a = int(np.floor((lo - origin) / vs))
     b = int(np.ceil((hi - origin) / vs))
     return max(a, 0), min(b, n)
-
-
-def traverse(origins: np.ndarray, dirs: np.ndarray, occupied: np.ndarray, t_max: np.ndarray | None = None,
-             lower=GRID.lower, voxel_size: float = GRID.voxel_size) -> np.ndarray:
-    """Voxels visited by rays up to and including the first occupied voxel (exact 3D DDA, all rays at once).
-
-    ``origins`` [N, 3] and ``dirs`` [N, 3] (any length, not zero) in the grid's frame; ``occupied`` bool [X, Y, Z];
-    ``t_max`` [N] optional end of each ray in units of ``dirs`` (a ray stops in the voxel where it ends if it met
-    nothing before). Rays may start outside the grid. Returns bool [X, Y, Z].
-    """
-    shape = np.asarray(occupied.shape)
-    lower = np.asarray(lower, dtype=np.float64)
-    upper = lower + shape * voxel_size
-    o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
-    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
-    d = np.where(np.abs(d) < 1e-12, 1e-12, d)
-    t_end = np.full(len(o), np.inf) if t_max is None else np.asarray(t_max, dtype=np.float64).reshape(-1)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        t1, t2 = (lower - o) / d, (upper - o) / d
-    t_in = np.maximum(np.minimum(t1, t2).max(axis=1), 0.0)
-    t_out = np.minimum(np.maximum(t1, t2).min(axis=1), t_end)
-    keep = t_in < t_out
-    o, d, t_in, t_out = o[keep], d[keep], t_in[keep], t_out[keep]
-    # Work on a grid padded by one voxel whose border counts as occupied: a ray leaving the grid stops there.
-    X, Y, Z = shape + 2
-    occ_pad = np.ones((X, Y, Z), bool)
-    occ_pad[1:-1, 1:-1, 1:-1] = occupied
-    occ_flat = occ_pad.reshape(-1)
-    out = np.zeros(X * Y * Z, bool)
-    p = o + t_in[:, None] * d
-    idx = np.clip(np.floor((p - lower) / voxel_size).astype(np.int64), 0, shape - 1)
-    step = np.where(d > 0, 1, -1)
-    with np.errstate(divide="ignore", over="ignore"):
-        t_delta = voxel_size / np.abs(d)
-        t_next = (lower + (idx + (step > 0)) * voxel_size - o) / d  # next boundary crossing per axis
-    strides = np.array([Y * Z, Z, 1], dtype=np.int64)
-    flat = (idx + 1) @ strides  # index into the padded grid
-    move = step * strides  # flat offset of one step along each axis
-    tx, ty, tz = (np.ascontiguousarray(t_next[:, a]) for a in range(3))
-    dx, dy, dz = (np.ascontiguousarray(t_delta[:, a]) for a in range(3))
-    mvx, mvy, mvz = (np.ascontiguousarray(move[:, a]) for a in range(3))
-    iteration = 0
-    while len(flat):
-        out[flat] = True
-        mx = (tx <= ty) & (tx <= tz)
-        my = (ty < tx) & (ty <= tz)
-        mz = ~(mx | my)
-        t_cross = np.where(mx, tx, np.where(my, ty, tz))
-        alive = ~occ_flat[flat] & (t_cross < t_out)
-        mx &= alive
-        my &= alive
-        mz &= alive
-        np.add(flat, mvx, out=flat, where=mx)
-        np.add(flat, mvy, out=flat, where=my)
-        np.add(flat, mvz, out=flat, where=mz)
-        np.add(tx, dx, out=tx, where=mx)
-        np.add(ty, dy, out=ty, where=my)
-        np.add(tz, dz, out=tz, where=mz)
-        iteration += 1
-        if iteration % 8 == 0 or alive.mean() < 0.75:
-            flat, tx, ty, tz, dx, dy, dz, mvx, mvy, mvz, t_out = (
-                a[alive] for a in (flat, tx, ty, tz, dx, dy, dz, mvx, mvy, mvz, t_out))
-    return out.reshape(X, Y, Z)[1:-1, 1:-1, 1:-1].copy()
