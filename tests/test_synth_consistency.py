@@ -1,71 +1,33 @@
 """Images, LiDAR and Occ3D ground truth of the synthetic world come from one geometry: measured agreement."""
-import json
-
 import numpy as np
 import pytest
 
-from occflownet.occ3d import GRID, map_lidarseg
-from occflownet.geometry import invert, make_transform, transform_points
 from occflownet.synth.camera import cast_rays, render_camera
-from occflownet.synth.frame import render_keyframe
+from occflownet.synth.consistency import lidar_camera_depths, lidar_label_agreement
 from occflownet.synth.layout import WorldConfig, build_world
-from occflownet.synth.preview import project_lidar
 from occflownet.synth.voxelize import voxelize
 
 
 def test_lidar_points_lie_in_gt_voxels_of_their_class(synth_root):
     """Read back from disk: LiDAR → ego with the calibrated_sensor, look up labels.npz, compare mapped classes."""
-    root, version = synth_root
-    t = {n: json.loads((root / version / f"{n}.json").read_text())
-         for n in ("sample", "sample_data", "calibrated_sensor", "sensor", "scene", "lidarseg")}
-    cs = {r["token"]: r for r in t["calibrated_sensor"]}
-    lidar = next(s["token"] for s in t["sensor"] if s["channel"] == "LIDAR_TOP")
-    samples = {s["token"]: s for s in t["sample"]}
-    scene = {s["token"]: s["name"] for s in t["scene"]}
-    seg = {r["sample_data_token"]: r["filename"] for r in t["lidarseg"]}
-    agree, total = 0, 0
-    for sd in t["sample_data"]:
-        calib = cs[sd["calibrated_sensor_token"]]
-        if calib["sensor_token"] != lidar:
-            continue
-        pts = np.fromfile(root / sd["filename"], dtype=np.float32).reshape(-1, 5)
-        cls = map_lidarseg(np.fromfile(root / seg[sd["token"]], dtype=np.uint8))
-        ego = transform_points(make_transform(calib["rotation"], calib["translation"]), pts[:, :3])
-        s = samples[sd["sample_token"]]
-        with np.load(root / "gts" / scene[s["scene_token"]] / s["token"] / "labels.npz") as z:
-            sem = z["semantics"]
-        inside = GRID.contains(ego)
-        ijk = GRID.index_of(ego[inside])
-        agree += int(np.sum(sem[ijk[:, 0], ijk[:, 1], ijk[:, 2]] == cls[inside]))
-        total += int(inside.sum())
-    assert total > 50_000
-    assert agree / total >= 0.95, f"only {agree / total:.3f} of LiDAR points in a voxel of their class"
+    own, vox = lidar_label_agreement(*synth_root)
+    assert len(own) > 50_000
+    agree = np.mean(own == vox)
+    assert agree >= 0.95, f"only {agree:.3f} of LiDAR points in a voxel of their class"
 
 
 def test_lidar_depth_matches_camera_rays(synth_world):
     """A LiDAR point on something static is exactly where the camera ray through its projection hits first (or
     hidden behind something nearer); the rendered pixel it falls in shows the same depth up to pixel size."""
     world, rig, t0 = synth_world
-    kf = render_keyframe(world, 2, rig, t0, 7)
-    moving = np.array([a.speed > 0 for a in world.agents] + [False])
-    exact, pixel, n = 0, 0, 0
-    for c in range(6):
-        u, v, idx = project_lidar(kf, rig, c)
-        cam2global = kf.camera_ego2global[c] @ rig.cam2ego[c]
-        z = transform_points(invert(cam2global) @ kf.lidar_ego2global @ rig.lidar2ego,
-                             kf.scan.points[idx, :3].astype(np.float64))[:, 2]
-        K = rig.intrinsics[c]
-        d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
-        t, _ = cast_rays(world.boxes_at((kf.camera_times_us[c] - t0) * 1e-6), cam2global[:3, 3],
-                         d_cam @ cam2global[:3, :3].T)
-        static = ~moving[kf.scan.instance[idx]]
-        assert np.all(z[static] >= t[static] - 1e-3), "a camera ray passed a static LiDAR point without hitting it"
-        exact += int(np.sum(np.abs(z - t)[static] < 1e-3))
-        depth = kf.cameras[c].depth[v.astype(int), u.astype(int)]
-        pixel += int(np.sum((np.abs(z - depth) < 0.05 + 0.05 * z)[static]))
-        n += int(static.sum())
-    assert n > 5000
-    assert exact / n > 0.8 and pixel / n > 0.85, (exact / n, pixel / n)
+    r = lidar_camera_depths(world, rig, t0, 7, 0, [2])
+    static = r["static"]
+    z, t = r["lidar"][static], r["ray"][static]
+    assert np.all(z >= t - 1e-3), "a camera ray passed a static LiDAR point without hitting it"
+    exact = np.mean(np.abs(z - t) < 1e-3)
+    pixel = np.mean(np.abs(z - r["pixel"][static]) < 0.05 + 0.05 * z)
+    assert static.sum() > 5000
+    assert exact > 0.8 and pixel > 0.85, (exact, pixel)
 
 
 def test_renderer_matches_unculled_ray_cast(synth_world):
