@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from occflownet.occ3d import GRID, NUM_CLASSES
-from occflownet.data.flow import box_flows, flow_moves, save_flow_record, save_flow_records
+from occflownet.data.flow import box_flows, flow_moves, save_flow_records
 from occflownet.geometry import make_transform, matrix_to_quaternion, yaw_to_quaternion
 from occflownet.data.box_voxels import voxels_in_box
 from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
@@ -133,7 +133,7 @@ def main() -> None:
     # disk: one record per file, and many keyframes in one file
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "one.npz"
-        save_flow_record(path, record)
+        save_flow_records(path, [record])
         single = path.stat().st_size
         many = []
         for n in range(200):

@@ -6,8 +6,7 @@ import torch
 from occflownet.occ3d import GRID, Grid, NUM_CLASSES
 from occflownet.geometry import make_transform, rotation_z
 from occflownet.data.box_voxels import voxels_in_box
-from occflownet.render.occupancy_flow import (BoxMove, PackedMoves, idw_neighbours, pack_moves, warp_volume,
-                                              warp_volumes)
+from occflownet.render.occupancy_flow import BoxMove, PackedMoves, idw_neighbours, pack_moves, warp_volumes
 
 CAR, PED = 4, 7
 CENTRE = np.array([0.2, 0.2, 1.2])  # a voxel centre, index (100, 100, 5)
@@ -22,6 +21,12 @@ def _scene(blocks):
         density[sl] = sigma
         logits[sl + (cls,)] = 4.0
     return density, logits
+
+
+def warp_volume(density, logits, boxes, mover="idw"):
+    """One volume [X, Y, Z] (+ logits [X, Y, Z, C]) warped into one frame by ``warp_volumes``."""
+    d, l = warp_volumes(density[None], logits[None], torch.zeros(1, dtype=torch.long), pack_moves([boxes]), mover)
+    return d[0], l[0]
 
 
 def _occupied(density):

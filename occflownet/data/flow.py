@@ -22,7 +22,7 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 
 from ..occ3d import DYNAMIC_CLASSES, GRID, Grid, category_to_occ3d
-from ..geometry import invert, make_transform, matrix_to_quaternion, quaternion_to_matrix
+from ..geometry import invert, make_transform, matrix_to_quaternion
 from .box_voxels import MARGIN_ADD, MARGIN_SCALE, voxels_in_box
 
 FLOW_FORMAT_VERSION = 1
@@ -79,23 +79,6 @@ class FlowRecord:
     def offsets(self) -> list[int]:
         """The frame offsets t that have at least one move, sorted."""
         return sorted(set(int(t) for t in self.offset))
-
-    def transformed(self, augment) -> "FlowRecord":
-        """The record seen through an augmentation of the ego frame (e.g. the BEV flip/rotation applied to the
-        volume): ``augment`` float [4, 4] maps current-ego points to augmented-ego points (rigid or a
-        reflection). Box poses become A·pose, transforms A·T·A⁻¹; a reflected box keeps a proper rotation by
-        flipping its own y axis (the box is symmetric, so it covers the same points)."""
-        A = np.asarray(augment, np.float64)
-        if A.shape != (4, 4) or not np.allclose(A[:3, :3] @ A[:3, :3].T, np.eye(3), atol=1e-6):
-            raise ValueError("augment must be a 4x4 rigid transform or reflection")
-        rot = np.stack([A[:3, :3] @ quaternion_to_matrix(q) for q in self.rotation]).reshape(-1, 3, 3)
-        if np.linalg.det(A[:3, :3]) < 0:
-            rot = rot @ np.diag([1.0, -1.0, 1.0])
-        A_inv = np.linalg.inv(A)
-        return FlowRecord(self.sample_token, self.box_index, self.label,
-                          self.center.astype(np.float64) @ A[:3, :3].T + A[:3, 3], self.size_wlh,
-                          np.stack([matrix_to_quaternion(r) for r in rot]).reshape(-1, 4), self.offset,
-                          self.move_box, A @ self.transform.astype(np.float64) @ A_inv, self.version)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {"box_index": self.box_index, "label": self.label, "center": self.center,
@@ -295,18 +278,6 @@ def load_flow_records(path) -> dict[str, FlowRecord]:
         out[token] = FlowRecord(token, t["box_index"][b], t["label"][b], t["center"][b], t["size_wlh"][b],
                                 t["rotation"][b], t["offset"][m], t["move_box"][m], t["transform"][m], version)
     return out
-
-
-def save_flow_record(path, record: FlowRecord) -> None:
-    """One record per file (``.npz``); same layout as a one-record ``save_flow_records`` file."""
-    save_flow_records(path, [record])
-
-
-def load_flow_record(path) -> FlowRecord:
-    records = load_flow_records(path)
-    if len(records) != 1:
-        raise ValueError(f"{path}: expected one flow record, found {len(records)}")
-    return next(iter(records.values()))
 
 
 def flow_path(dataroot, version: str) -> Path:

@@ -290,15 +290,3 @@ def warp_volumes(density: torch.Tensor, logits: torch.Tensor, source: torch.Tens
     out_d.index_put_((write_n, write_v), moved_values(flat_d, 0))
     out_l.index_put_((write_n, write_v), moved_values(flat_l, C))
     return out_d.reshape(N, X, Y, Z), out_l.reshape(N, X, Y, Z, C)
-
-
-def warp_volume(density: torch.Tensor, logits: torch.Tensor, boxes: Sequence[BoxMove], mover: Mover = "idw",
-                grid: Grid = GRID) -> tuple[torch.Tensor, torch.Tensor]:
-    """One volume, one frame: density [X, Y, Z], logits [X, Y, Z, C], the frame's box moves →
-    (density_t [X, Y, Z], logits_t [X, Y, Z, C]), a warped copy (the inputs are not modified)."""
-    if density.ndim != 3 or logits.ndim != 4:
-        raise ValueError(f"warp_volume takes density [X, Y, Z] and logits [X, Y, Z, C], got "
-                         f"{tuple(density.shape)} and {tuple(logits.shape)}")
-    d, l = warp_volumes(density[None], logits[None], torch.zeros(1, dtype=torch.long), pack_moves([boxes]),
-                        mover, grid)
-    return d[0], l[0]
