@@ -18,9 +18,7 @@ Every loop is bounded by a request count and a time limit.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -33,14 +31,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 FRAME = REPO.parent / "shared" / "data" / "nuscenes-frame"
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tests"))
+
+from serve_fixtures import free_port  # noqa: E402
 
 from occflownet.occ3d import CAMERAS  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from occflownet.serve.client import wait_ready  # noqa: E402
 
 
 def rss_mib(pid: int) -> float:
@@ -73,7 +69,6 @@ def get_model(args, workdir: Path) -> tuple[Path, str]:
         if proc.returncode == 0 and out.is_file():
             return out, "random-init `tiny` export (occflownet export --preset tiny --random-init --seed 0)"
         print(f"# export unavailable ({(proc.stderr or proc.stdout).strip().splitlines()[-1:]}); using the fake model")
-    sys.path.insert(0, str(REPO / "tests"))
     from serve_fixtures import build_fake_model
     return build_fake_model(workdir / "fake.onnx"), "FAKE test model (tests/serve_fixtures.py), not a network"
 
@@ -82,16 +77,15 @@ class Direct:
     """The same work without HTTP: decode the six JPEGs, session.run on the decoded arrays (this process)."""
 
     def __init__(self, model: Path, threads: int):
-        from occflownet.serve.calibration import calibration_for_sizes
+        from occflownet.serve.calibration import request_calibration
         from occflownet.serve.model_runtime import ModelRuntime
         from occflownet.serve.settings import ServeSettings
 
         self.jpegs = {cam: (FRAME / f"{cam}.jpg").read_bytes() for cam in CAMERAS}
         self.runtime = ModelRuntime.load(model, ServeSettings(intra_op_threads=threads))
-        images = self.decode()
-        calib = json.loads((FRAME / "calib.json").read_text())
-        self.K, self.T = calibration_for_sizes(calib, self.runtime.metadata, [(1600, 900)] * 6)
-        self.images = np.stack(images)
+        self.images = np.stack(self.decode())                                  # uint8 [6, 900, 1600, 3] RGB
+        calib = (FRAME / "calib.json").read_bytes()
+        self.K, self.T = request_calibration(calib, self.runtime.metadata, [(1600, 900)] * 6)
         for _ in range(3):
             self.infer()
 
@@ -178,22 +172,7 @@ def interleaved(base: str, files: dict, direct: Direct, n: int) -> None:
           f"{100 * vs_direct / m['run']:.1f} % of session.run (target <= 10 % plus decode)")
 
 
-def wait_ready(base: str, proc) -> None:
-    import httpx
-
-    deadline = time.monotonic() + 120
-    while True:
-        if proc.poll() is not None or time.monotonic() > deadline:
-            raise SystemExit("server did not become ready")
-        try:
-            if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-
-
-def main() -> int:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model")
     parser.add_argument("--fake", action="store_true", help="use the fake test model")
@@ -203,7 +182,98 @@ def main() -> int:
     parser.add_argument("--concurrency", default="1,2,4")
     parser.add_argument("--rss-requests", type=int, default=500)
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: cores)")
-    args = parser.parse_args()
+    return parser.parse_args()
+
+
+def start_server(model: Path, threads: int, max_queue: int) -> tuple[subprocess.Popen, str]:
+    """`occflownet serve` on a free 127.0.0.1 port → (its process, base URL), once /readyz answers 200."""
+    port = free_port()
+    env = os.environ | {"OCCFLOWNET_INTRA_OP_THREADS": str(threads)}
+    proc = subprocess.Popen([sys.executable, "-m", "occflownet", "serve", "--model", str(model), "--port", str(port),
+                             "--no-access-log", "--log-level", "warning", "--max-queue", str(max_queue)],
+                            env=env, cwd=REPO)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        wait_ready(base, timeout=120, proc=proc, interval=0.2)
+    except BaseException:
+        proc.terminate()
+        proc.wait(30)
+        raise
+    return proc, base
+
+
+def direct_phases(base: str, files: dict, model: Path, threads: int, rounds: int) -> None:
+    """The interleaved HTTP-vs-direct comparison, then micro-batching (B=2 vs two B=1 runs) on the direct session."""
+    direct = Direct(model, threads)
+    interleaved(base, files, direct, rounds)
+    one = [timed(direct.infer) for _ in range(5)]
+    two = [timed(direct.batch2) for _ in range(5)]
+    print(f"micro-batching: session.run B=2 p50 {p(two, 50):.1f} ms vs B=1 {p(one, 50):.1f} ms "
+          f"({p(two, 50) / (2 * p(one, 50)):.2f} x two B=1 runs)")
+
+
+def load_phases(base: str, files: dict, levels: list[int], args) -> int:
+    """Throughput and latency per concurrency level, then JSON and PNG answers at one client → requests done."""
+    done = 0
+    for c in levels:
+        res = load_level(base, files, c, args.requests, args.time_limit)
+        done += res["ok"]
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in res["stages"].items())
+        print(f"c={c}: {res['ok']} ok {res['statuses']} in {res['wall_s']:.1f} s: {res['rps']:.2f} req/s, "
+              f"p50 {res['p50']:.1f} ms, p99 {res['p99']:.1f} ms; server-side p50 (ms): {stages}")
+    for accept in ("application/json", "image/png"):
+        r = load_level(base, files, 1, 10, args.time_limit, accept)
+        done += r["ok"]
+        print(f"c=1 Accept {accept}: p50 {r['p50']:.1f} ms, server encode p50 {r['stages']['encode']:.1f} ms")
+    return done
+
+
+def load_until(base: str, files: dict, done: int, total: int, time_limit: float) -> int:
+    """Two clients until ``total`` requests are done (for the memory figure), bounded in time → requests done."""
+    t0 = time.monotonic()
+    while done < total and time.monotonic() - t0 < 20 * time_limit:
+        r = load_level(base, files, 2, min(total - done, 100), time_limit)
+        done += r["ok"]
+        if r["ok"] == 0:
+            break
+    return done
+
+
+def print_server_means(base: str) -> None:
+    """Mean server-side time per stage over every request, from the server's own /metrics histograms."""
+    import httpx
+
+    text = httpx.get(f"{base}/metrics").text
+    sums = {line.split('"')[1]: float(line.split()[-1]) for line in text.splitlines()
+            if line.startswith("occflownet_stage_duration_seconds_sum")}
+    count = next(float(line.split()[-1]) for line in text.splitlines()
+                 if line.startswith('occflownet_stage_duration_seconds_count{stage="inference"}'))
+    print("server means over all requests (ms): " + ", ".join(f"{k} {1e3 * v / count:.1f}" for k, v in sums.items()))
+
+
+def run_benchmark(args, model: Path, threads: int) -> None:
+    """Every phase against one server process (module docstring), in order."""
+    files = {cam: (f"{cam}.jpg", (FRAME / f"{cam}.jpg").read_bytes(), "image/jpeg") for cam in CAMERAS}
+    files["calibration"] = ("calib.json", (FRAME / "calib.json").read_bytes(), "application/json")
+    levels = [int(c) for c in args.concurrency.split(",")]
+    proc, base = start_server(model, threads, max(levels) + 2)
+    try:
+        first = load_level(base, files, 1, 10, args.time_limit)
+        rss_10, done = rss_mib(proc.pid), first["ok"]
+        direct_phases(base, files, model, threads, args.rounds)
+        done += args.rounds
+        done += load_phases(base, files, levels, args)
+        done = load_until(base, files, done, args.rss_requests, args.time_limit)
+        print(f"server RSS: {rss_10:.0f} MiB after 10 requests, {rss_mib(proc.pid):.0f} MiB after {done} "
+              f"requests; load average at end {os.getloadavg()[0]:.2f}")
+        print_server_means(base)
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def main() -> int:
+    args = parse_args()
     if not FRAME.is_dir():
         print(f"real frame not found at {FRAME}", file=sys.stderr)
         return 2
@@ -212,62 +282,11 @@ def main() -> int:
 
     cap_malloc_arenas()  # as the server does
     threads = args.threads or available_cores()
-    files = {cam: (f"{cam}.jpg", (FRAME / f"{cam}.jpg").read_bytes(), "image/jpeg") for cam in CAMERAS}
-    files["calibration"] = ("calib.json", (FRAME / "calib.json").read_bytes(), "application/json")
-    levels = [int(c) for c in args.concurrency.split(",")]
-
     with tempfile.TemporaryDirectory() as tmp:
         model, which = get_model(args, Path(tmp))
         print(f"# model: {which}; {model.stat().st_size / 1e6:.1f} MB; {available_cores()} cores; intra-op threads "
               f"{threads}; load average at start {os.getloadavg()[0]:.2f}")
-        port = free_port()
-        env = os.environ | {"OCCFLOWNET_INTRA_OP_THREADS": str(threads)}
-        proc = subprocess.Popen([sys.executable, "-m", "occflownet", "serve", "--model", str(model), "--port",
-                                 str(port), "--no-access-log", "--log-level", "warning",
-                                 "--max-queue", str(max(levels) + 2)], env=env, cwd=REPO)
-        base = f"http://127.0.0.1:{port}"
-        try:
-            import httpx
-
-            wait_ready(base, proc)
-            first = load_level(base, files, 1, 10, args.time_limit)
-            rss_10, done = rss_mib(proc.pid), first["ok"]
-            direct = Direct(model, threads)
-            interleaved(base, files, direct, args.rounds)
-            done += args.rounds
-            one = [timed(direct.infer) for _ in range(5)]
-            two = [timed(direct.batch2) for _ in range(5)]
-            print(f"micro-batching: session.run B=2 p50 {p(two, 50):.1f} ms vs B=1 {p(one, 50):.1f} ms "
-                  f"({p(two, 50) / (2 * p(one, 50)):.2f} x two B=1 runs)")
-            del direct
-            for c in levels:
-                res = load_level(base, files, c, args.requests, args.time_limit)
-                done += res["ok"]
-                stages = ", ".join(f"{k} {v:.1f}" for k, v in res["stages"].items())
-                print(f"c={c}: {res['ok']} ok {res['statuses']} in {res['wall_s']:.1f} s: {res['rps']:.2f} req/s, "
-                      f"p50 {res['p50']:.1f} ms, p99 {res['p99']:.1f} ms; server-side p50 (ms): {stages}")
-            for accept in ("application/json", "image/png"):
-                r = load_level(base, files, 1, 10, args.time_limit, accept)
-                done += r["ok"]
-                print(f"c=1 Accept {accept}: p50 {r['p50']:.1f} ms, server encode p50 {r['stages']['encode']:.1f} ms")
-            t0 = time.monotonic()
-            while done < args.rss_requests and time.monotonic() - t0 < 20 * args.time_limit:
-                r = load_level(base, files, 2, min(args.rss_requests - done, 100), args.time_limit)
-                done += r["ok"]
-                if r["ok"] == 0:
-                    break
-            print(f"server RSS: {rss_10:.0f} MiB after 10 requests, {rss_mib(proc.pid):.0f} MiB after {done} "
-                  f"requests; load average at end {os.getloadavg()[0]:.2f}")
-            text = httpx.get(f"{base}/metrics").text
-            sums = {line.split('"')[1]: float(line.split()[-1]) for line in text.splitlines()
-                    if line.startswith("occflownet_stage_duration_seconds_sum")}
-            count = next(float(line.split()[-1]) for line in text.splitlines()
-                         if line.startswith('occflownet_stage_duration_seconds_count{stage="inference"}'))
-            print("server means over all requests (ms): " +
-                  ", ".join(f"{k} {1e3 * v / count:.1f}" for k, v in sums.items()))
-        finally:
-            proc.terminate()
-            proc.wait(30)
+        run_benchmark(args, model, threads)
     return 0
 
 

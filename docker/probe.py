@@ -3,8 +3,9 @@
     python docker/probe.py --url http://127.0.0.1:PORT --frame DIR --reference grid.npz --model m.onnx \
         --started-at EPOCH_SECONDS
 
-Checks: /healthz answers ok and /readyz becomes ready, each polled every 50 ms (prints the seconds since
---started-at, i.e. since `docker run` returned, and the server's own warm-up time); /v1/metadata names the model file; then one
+Checks: /healthz answers ok and /readyz becomes ready, each polled every 50 ms by
+``occflownet.serve.client.wait_ready`` (prints the seconds since --started-at, i.e. since `docker run` returned, and
+the server's own warm-up time); /v1/metadata names the model file; then one
 POST /v1/occupancy of the frame per response format, each grid equal, voxel for voxel, to the reference computed by
 local onnxruntime (`occflownet predict --model`). The PNG is decoded and compared pixel for pixel with the picture
 serve/encode.py draws from the reference grid with the model's class colours. Exit status 1 on the first failure.
@@ -22,6 +23,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from occflownet.serve.client import ServerNotReady, wait_ready
+
 CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
 SHAPE = (200, 200, 16)
 
@@ -33,22 +36,6 @@ class ProbeError(RuntimeError):
 def check(condition: bool, message: str) -> None:
     if not condition:
         raise ProbeError(message)
-
-
-def wait_for(client: httpx.Client, path: str, started_at: float, timeout: float) -> tuple[dict, float]:
-    """Poll ``path`` every 50 ms until it answers 200; (its JSON body, seconds since ``started_at``)."""
-    deadline = time.monotonic() + timeout
-    last = "no answer"
-    while time.monotonic() < deadline:
-        try:
-            r = client.get(path, timeout=2)
-            if r.status_code == 200:
-                return r.json(), time.time() - started_at
-            last = f"{r.status_code} {r.text[:200]}"
-        except httpx.TransportError as exc:
-            last = f"{type(exc).__name__}: {exc}"
-        time.sleep(0.05)
-    raise ProbeError(f"{path} did not answer 200 within {timeout:.0f} s (last: {last})")
 
 
 def expected_png(reference: np.ndarray, model: Path) -> np.ndarray:
@@ -109,12 +96,12 @@ def main() -> int:
         print("probe: warning: the reference grid is all free, so the comparison below is weak", file=sys.stderr)
 
     with httpx.Client(base_url=args.url) as client:
-        health, after = wait_for(client, "/healthz", args.started_at, args.ready_timeout)
+        health = wait_ready(args.url, args.ready_timeout, path="/healthz")
         check(health.get("status") == "ok", f"/healthz: {health}")
-        print(f"probe: /healthz ok {after:.2f} s after `docker run` returned")
-        ready, after = wait_for(client, "/readyz", args.started_at, args.ready_timeout)
+        print(f"probe: /healthz ok {time.time() - args.started_at:.2f} s after `docker run` returned")
+        ready = wait_ready(args.url, args.ready_timeout)
         check(ready.get("status") == "ready", f"/readyz: {ready}")
-        print(f"probe: /readyz ready {after:.2f} s after `docker run` returned "
+        print(f"probe: /readyz ready {time.time() - args.started_at:.2f} s after `docker run` returned "
               f"(server warm-up {ready.get('warmup_seconds')} s)")
         meta = client.get("/v1/metadata", timeout=10)
         check(meta.status_code == 200, f"/v1/metadata: {meta.status_code}")
@@ -147,6 +134,6 @@ def main() -> int:
 if __name__ == "__main__":
     try:
         sys.exit(main())
-    except ProbeError as exc:
+    except (ProbeError, ServerNotReady) as exc:
         print(f"probe: FAILED: {exc}", file=sys.stderr)
         sys.exit(1)

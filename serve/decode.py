@@ -152,12 +152,9 @@ def common_size(sizes: list[tuple[int, int]]) -> tuple[int, int]:
 
 
 def intrinsics_for_size(intrinsics: np.ndarray, sizes: list[tuple[int, int]], size: tuple[int, int]) -> np.ndarray:
-    """Intrinsics [6, 3, 3] (each for its image's (w_i, h_i) in ``sizes``) → float32 [6, 3, 3] for images resized
-    to ``size`` (w, h) by :func:`decode_image` (OpenCV, pixel-centre convention): the contract's pixel-centre rule
-    (``occflownet.contract.scale_intrinsics``, sx = w / w_i, sy = h / h_i); unchanged where the size matches."""
+    """Intrinsics [6, 3, 3] (each for its image's (w_i, h_i) in ``sizes``) → float32 [6, 3, 3] for the images as
+    :func:`decode_image` resized them to ``size`` (w, h): the contract's pixel-centre rule
+    (:func:`occflownet.contract.scale_intrinsics`, sx = w / w_i, sy = h / h_i), exactly unchanged where the size
+    matches. No aspect-ratio check: the server made this resize itself, so it is known exactly."""
     w, h = size
-    K = intrinsics.astype(np.float64).copy()
-    for i, (wi, hi) in enumerate(sizes):
-        if (wi, hi) != (w, h):
-            K[i] = scale_intrinsics(K[i], w / wi, h / hi)
-    return K.astype(np.float32)
+    return np.stack([scale_intrinsics(K, w / wi, h / hi) for K, (wi, hi) in zip(intrinsics, sizes)]).astype(np.float32)

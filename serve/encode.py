@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import base64
 import io
-import json
 import time
 
 import numpy as np
 
 from occflownet import pictures
+from occflownet.serve.schemas import OccupancyJSON, OccupancyModel
 
 JSON = "application/json"
 OCTET = "application/octet-stream"
@@ -78,20 +78,20 @@ def shape_headers(occupancy: np.ndarray) -> dict[str, str]:
 
 
 def encode_json(occupancy: np.ndarray, metadata, timings_ms: dict) -> bytes:
-    """JSON body; ``timings_ms`` gets "encode" (time up to the final serialisation) and "total" added."""
+    """JSON body (:class:`~occflownet.serve.schemas.OccupancyJSON`) of occupancy uint8 [X, Y, Z]; ``timings_ms``
+    gets "encode" (time up to the final serialisation) and "total" added."""
     t0 = time.perf_counter()
-    body = {
-        "shape": list(occupancy.shape), "dtype": "uint8", "axes": ["x", "y", "z"], "order": "C",
-        "frame": "ego (x forward, y left, z up)",
-        "classes": list(metadata.classes), "free_index": metadata.free_index, "grid": metadata.grid,
-        "occupancy_base64": base64.b64encode(np.ascontiguousarray(occupancy).tobytes()).decode("ascii"),
-        "class_counts": class_counts(occupancy, metadata.classes),
-        "model": {"preset": metadata.preset, "occflownet_version": metadata.occflownet_version},
-        "timings_ms": timings_ms,
-    }
+    occupancy_base64 = base64.b64encode(np.ascontiguousarray(occupancy).tobytes()).decode("ascii")
+    counts = class_counts(occupancy, metadata.classes)
     timings_ms["encode"] = round((time.perf_counter() - t0) * 1e3, 3)
     timings_ms["total"] = round(sum(v for k, v in timings_ms.items() if k != "total"), 3)
-    return json.dumps(body, separators=(",", ":")).encode("utf-8")
+    body = OccupancyJSON(
+        shape=list(occupancy.shape), dtype="uint8", axes=["x", "y", "z"], order="C",
+        frame="ego (x forward, y left, z up)", classes=list(metadata.classes), free_index=metadata.free_index,
+        grid=metadata.grid, occupancy_base64=occupancy_base64, class_counts=counts,
+        model=OccupancyModel(preset=metadata.preset, occflownet_version=metadata.occflownet_version),
+        timings_ms=timings_ms)
+    return body.model_dump_json().encode("utf-8")
 
 
 def encode_npy(occupancy: np.ndarray) -> bytes:

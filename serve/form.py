@@ -3,7 +3,7 @@
 Parts are collected as raw bytes whether or not the client gave a filename (no text decoding, no temporary files).
 A part with an unexpected or repeated name is refused (422) as soon as its headers arrive, before its data is read;
 missing parts are reported (422) once the body has ended. Each part has its own byte limit; the whole body is
-bounded by :class:`serve.limits.BodySizeLimitMiddleware`.
+bounded by :class:`occflownet.serve.limits.BodySizeLimitMiddleware`.
 """
 from __future__ import annotations
 
@@ -36,57 +36,69 @@ def _check_content_type(value: str | None) -> bytes:
     return boundary
 
 
+class _PartCollector:
+    """The streaming parser's callbacks: each part's headers checked as soon as they end (name, duplicates), its
+    data counted against its limit while it streams, the finished parts in :attr:`parts` by name."""
+
+    def __init__(self, limits: dict[str, int]):
+        self.limits = limits
+        self.parts: dict[str, Part] = {}
+        self.ended = False
+        self._begin()
+
+    def callbacks(self) -> dict:
+        return {"on_part_begin": self._begin, "on_header_field": self._header_field,
+                "on_header_value": self._header_value, "on_header_end": self._header_end,
+                "on_headers_finished": self._headers_finished, "on_part_data": self._data,
+                "on_part_end": self._part_end, "on_end": self._end}
+
+    def _begin(self) -> None:
+        self.headers: dict[str, str] = {}
+        self.field, self.value, self.chunks, self.size, self.name = b"", b"", [], 0, None
+
+    def _header_field(self, data: bytes, start: int, end: int) -> None:
+        self.field += data[start:end]
+
+    def _header_value(self, data: bytes, start: int, end: int) -> None:
+        self.value += data[start:end]
+
+    def _header_end(self) -> None:
+        self.headers[self.field.decode("latin-1").lower()] = self.value.decode("latin-1")
+        self.field, self.value = b"", b""
+
+    def _headers_finished(self) -> None:
+        disposition, params = parse_options_header(self.headers.get("content-disposition", ""))
+        name = params.get(b"name", b"").decode("utf-8", "replace")
+        if disposition != b"form-data" or not name:
+            raise ApiError(422, "unprocessable", "a part has no Content-Disposition: form-data; name=...")
+        if name not in self.limits:
+            raise ApiError(422, "unexpected_part",
+                           f"unexpected part {name!r}; allowed parts: {', '.join(self.limits)}")
+        if name in self.parts:
+            raise ApiError(422, "duplicate_part", f"part {name!r} appears more than once")
+        self.name = name
+
+    def _data(self, data: bytes, start: int, end: int) -> None:
+        self.size += end - start
+        if self.size > self.limits[self.name]:
+            raise ApiError(413, "payload_too_large",
+                           f"part {self.name!r} is larger than its limit of {self.limits[self.name]} bytes")
+        self.chunks.append(data[start:end])
+
+    def _part_end(self) -> None:
+        filename = _param(self.headers.get("content-disposition", ""), b"filename")
+        self.parts[self.name] = Part(self.name, filename, self.headers.get("content-type"), b"".join(self.chunks))
+
+    def _end(self) -> None:
+        self.ended = True
+
+
 async def read_parts(request, limits: dict[str, int]) -> dict[str, Part]:
     """Read the request's multipart body → {part name: Part}. ``limits`` maps every allowed part name to its byte
     limit. Raises ApiError: 415 (not multipart), 400 (malformed), 413 (over a limit), 422 (names)."""
     boundary = _check_content_type(request.headers.get("content-type"))
-    parts: dict[str, Part] = {}
-    state = {"headers": {}, "field": b"", "value": b"", "chunks": [], "size": 0, "name": None, "end": False}
-
-    def on_part_begin():
-        state.update(headers={}, field=b"", value=b"", chunks=[], size=0, name=None)
-
-    def on_header_field(data, start, end):
-        state["field"] += data[start:end]
-
-    def on_header_value(data, start, end):
-        state["value"] += data[start:end]
-
-    def on_header_end():
-        state["headers"][state["field"].decode("latin-1").lower()] = state["value"].decode("latin-1")
-        state["field"], state["value"] = b"", b""
-
-    def on_headers_finished():
-        disposition, params = parse_options_header(state["headers"].get("content-disposition", ""))
-        name = params.get(b"name", b"").decode("utf-8", "replace")
-        if disposition != b"form-data" or not name:
-            raise ApiError(422, "unprocessable", "a part has no Content-Disposition: form-data; name=...")
-        if name not in limits:
-            raise ApiError(422, "unexpected_part",
-                           f"unexpected part {name!r}; allowed parts: {', '.join(limits)}")
-        if name in parts:
-            raise ApiError(422, "duplicate_part", f"part {name!r} appears more than once")
-        state["name"] = name
-
-    def on_part_data(data, start, end):
-        state["size"] += end - start
-        if state["size"] > limits[state["name"]]:
-            raise ApiError(413, "payload_too_large",
-                           f"part {state['name']!r} is larger than its limit of {limits[state['name']]} bytes")
-        state["chunks"].append(data[start:end])
-
-    def on_part_end():
-        name = state["name"]
-        filename = _param(state["headers"].get("content-disposition", ""), b"filename")
-        parts[name] = Part(name, filename, state["headers"].get("content-type"), b"".join(state["chunks"]))
-
-    def on_end():
-        state["end"] = True
-
-    parser = MultipartParser(boundary, {
-        "on_part_begin": on_part_begin, "on_header_field": on_header_field, "on_header_value": on_header_value,
-        "on_header_end": on_header_end, "on_headers_finished": on_headers_finished, "on_part_data": on_part_data,
-        "on_part_end": on_part_end, "on_end": on_end})
+    collector = _PartCollector(limits)
+    parser = MultipartParser(boundary, collector.callbacks())
     try:
         async for chunk in request.stream():
             if chunk:
@@ -98,9 +110,9 @@ async def read_parts(request, limits: dict[str, int]) -> dict[str, Part]:
         raise ApiError(400, "bad_request", "client disconnected during the upload") from None
     except FormParserError as exc:
         raise ApiError(400, "bad_request", f"malformed multipart body: {exc}") from None
-    if not state["end"]:
+    if not collector.ended:
         raise ApiError(400, "bad_request", "multipart body ended before its closing boundary (truncated upload?)")
-    return parts
+    return collector.parts
 
 
 def _param(header: str, key: bytes) -> str | None:

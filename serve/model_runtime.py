@@ -19,25 +19,15 @@ from pathlib import Path
 import numpy as np
 
 from occflownet.contract import ContractError, ModelMetadata, check_session, make_feeds
-from occflownet.contract import parse_metadata as contract_parse_metadata
-from occflownet.serve.calibration import calibration_for_sizes
+from occflownet.serve.calibration import request_calibration
 from occflownet.serve.decode import intrinsics_for_size
 from occflownet.serve.settings import ServeSettings
 
-__all__ = ["ModelLoadError", "ModelMetadata", "ModelRuntime", "parse_metadata"]
+__all__ = ["ModelLoadError", "ModelRuntime"]
 
 
 class ModelLoadError(RuntimeError):
     """The model file is missing, unreadable, not ONNX, or breaks contract v1; the message names the file."""
-
-
-def parse_metadata(props: dict[str, str], source: str) -> ModelMetadata:
-    """ONNX ``metadata_props`` → :class:`~occflownet.contract.ModelMetadata` (the contract's parser);
-    ModelLoadError names ``source``."""
-    try:
-        return contract_parse_metadata(props, source)
-    except ContractError as exc:
-        raise ModelLoadError(str(exc)) from None
 
 
 class ModelRuntime:
@@ -92,13 +82,13 @@ class ModelRuntime:
         return occ[0]
 
     def warm_up(self) -> None:
-        """Run one inference on black images of the default calibration's size (or the graph's fixed size); sets
-        ``ready`` on success."""
+        """Run one inference as a request without a calibration part would: black uint8 [6, h, w, 3] images of the
+        default calibration's size (or the graph's fixed size), the default calibration. Sets ``ready`` on success."""
         size = tuple(int(v) for v in self.metadata.default_calibration["image_size"])
         w, h = self.fixed_image_size or size
         t0 = time.perf_counter()
         try:
-            K, T = calibration_for_sizes(None, self.metadata, [size] * 6)
+            K, T = request_calibration(None, self.metadata, [size] * 6)
             self.infer(np.zeros((6, h, w, 3), np.uint8), intrinsics_for_size(K, [size] * 6, (w, h)), T)
         except Exception as exc:
             self.warmup_error = f"warm-up inference failed: {type(exc).__name__}: {exc}"

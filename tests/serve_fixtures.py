@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import json
+import socket
 from pathlib import Path
 
 import cv2
@@ -21,6 +22,7 @@ import numpy as np
 from occflownet import __version__
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, FREE, GRID
 from occflownet.rig import default_rig
+from occflownet.serve.client import wait_ready
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 FRAME_DIR = SHARED / "data" / "nuscenes-frame"
@@ -45,27 +47,56 @@ def build_fake_model(path: Path, threshold: float = 0.5, seed: int = 0, default_
     """Write the fake contract-v1 model to ``path`` (about 0.7 MB); ``metadata`` overrides/extends the keys;
     ``fixed_hw`` pins the images input's H and W (contract v1 leaves them dynamic)."""
     import onnx
-    from onnx import TensorProto, helper, numpy_helper
+    from onnx import TensorProto, helper
+
+    X, Y, Z = GRID.shape
+    graph = helper.make_graph(
+        _fake_nodes(), "occflownet_fake",
+        [helper.make_tensor_value_info("images", TensorProto.UINT8, ["B", 6, *(fixed_hw or ("H", "W")), 3]),
+         helper.make_tensor_value_info("intrinsics", TensorProto.FLOAT, ["B", 6, 3, 3]),
+         helper.make_tensor_value_info("cam2ego", TensorProto.FLOAT, ["B", 6, 4, 4])],
+        [helper.make_tensor_value_info("occupancy", TensorProto.UINT8, ["B", X, Y, Z]),
+         helper.make_tensor_value_info("density", TensorProto.FLOAT, ["B", X, Y, Z])],
+        initializer=_fake_initializers(threshold, seed, default_size))
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="occflownet-tests")
+    model.ir_version = 8
+    meta = fake_metadata(threshold, default_size) | (metadata or {})
+    helper.set_model_props(model, {k: json.dumps(v) for k, v in meta.items()})
+    onnx.checker.check_model(model)
+    path = Path(path)
+    onnx.save(model, str(path))
+    return path
+
+
+def _fake_initializers(threshold: float, seed: int, default_size) -> list:
+    """The fake graph's constants: the pattern P uint8 [200, 200, 16], u0 and tx0 of the default calibration, τ."""
+    from onnx import numpy_helper
 
     calib = default_rig(*default_size)
     front = calib["cameras"][CAMERAS[0]]
     u0 = front["intrinsic"][0][0] / default_size[0]
     tx0 = front["cam2ego"][0][3]
-    P = fake_pattern(seed)
 
     def const(name, value):
         return numpy_helper.from_array(np.asarray(value), name)
 
-    inits = [
-        const("P", P), const("quarter", np.float32(0.25)),
+    return [
+        const("P", fake_pattern(seed)), const("quarter", np.float32(0.25)),
         const("two", np.float32(2.0)), const("four", np.float32(4.0)), const("eight", np.float32(8.0)),
         const("half", np.float32(0.5)), const("inv255", np.float32(1 / 255)), const("u0", np.float32(u0)),
         const("tx0", np.float32(tx0)), const("tau", np.float32(threshold)), const("seventeen", np.int64(17)),
         const("free", np.uint8(FREE)), const("axes123", np.array([1, 2, 3], np.int64)),
         const("i0", np.array(0, np.int64)), const("i3", np.array(3, np.int64)),
     ]
+
+
+def _fake_nodes() -> list:
+    """The fake graph's nodes (module docstring): images [B, 6, H, W, 3], intrinsics [B, 6, 3, 3], cam2ego
+    [B, 6, 4, 4] → occupancy uint8 and density float32 [B, 200, 200, 16]."""
+    from onnx import TensorProto, helper
+
     n = helper.make_node
-    nodes = [
+    return [
         n("Cast", ["images"], ["img_f"], to=TensorProto.FLOAT),
         n("ReduceMean", ["img_f"], ["m"], axes=[1, 2, 3, 4], keepdims=0),           # [B]
         n("Unsqueeze", ["m", "axes123"], ["m4"]),                                   # [B,1,1,1]
@@ -102,23 +133,6 @@ def build_fake_model(path: Path, threshold: float = 0.5, seed: int = 0, default_
         n("GreaterOrEqual", ["density", "tau"], ["occupied"]),
         n("Where", ["occupied", "sem", "free"], ["occupancy"]),
     ]
-    X, Y, Z = GRID.shape
-    graph = helper.make_graph(
-        nodes, "occflownet_fake",
-        [helper.make_tensor_value_info("images", TensorProto.UINT8, ["B", 6, *(fixed_hw or ("H", "W")), 3]),
-         helper.make_tensor_value_info("intrinsics", TensorProto.FLOAT, ["B", 6, 3, 3]),
-         helper.make_tensor_value_info("cam2ego", TensorProto.FLOAT, ["B", 6, 4, 4])],
-        [helper.make_tensor_value_info("occupancy", TensorProto.UINT8, ["B", X, Y, Z]),
-         helper.make_tensor_value_info("density", TensorProto.FLOAT, ["B", X, Y, Z])],
-        initializer=inits)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="occflownet-tests")
-    model.ir_version = 8
-    meta = fake_metadata(threshold, default_size) | (metadata or {})
-    helper.set_model_props(model, {k: json.dumps(v) for k, v in meta.items()})
-    onnx.checker.check_model(model)
-    path = Path(path)
-    onnx.save(model, str(path))
-    return path
 
 
 def fake_reference(images: np.ndarray, intrinsics: np.ndarray, cam2ego: np.ndarray, threshold: float = 0.5,
@@ -176,23 +190,20 @@ def npy_bytes(array: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def wait_ready(base: str, timeout: float = 30.0, proc=None) -> None:
-    """Poll ``{base}/readyz`` until it answers 200; fail if ``proc`` (a server subprocess) exits first."""
-    import time
+def wait_app_ready(client, timeout: float = 10.0) -> dict:
+    """:func:`occflownet.serve.client.wait_ready` for an in-process app (a starlette TestClient) → /readyz JSON."""
+    def get(path: str) -> tuple[int, bytes]:
+        r = client.get(path)
+        return r.status_code, r.content
 
-    import httpx
+    return wait_ready("", timeout, get=get, interval=0.01)
 
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if proc is not None and proc.poll() is not None:
-            raise AssertionError(f"server exited with {proc.returncode}: {proc.stderr.read()}")
-        try:
-            if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.05)
-    raise AssertionError(f"{base} not ready after {timeout} s")
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def stop_server(proc, timeout: float = 20.0) -> None:

@@ -5,19 +5,18 @@ import json
 import subprocess
 import sys
 import threading
-import time
 
 import cv2
 import numpy as np
 import pytest
 from serve_fixtures import (FRAME_DIR, build_fake_model, encode_image, fake_reference, image_files,
-                            real_frame_files, synthetic_images)
+                            real_frame_files, synthetic_images, wait_app_ready)
 from starlette.testclient import TestClient
 
+from occflownet.contract import validate_calibration
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, FREE
 from occflownet.rig import default_rig
 from occflownet.serve.app import create_app
-from occflownet.serve.calibration import calibration_for_sizes
 from occflownet.pictures import top_down
 from occflownet.serve.model_runtime import ModelLoadError, ModelRuntime
 from occflownet.serve.settings import ServeSettings
@@ -30,21 +29,12 @@ def model_path(tmp_path_factory):
     return build_fake_model(tmp_path_factory.mktemp("serve") / "fake.onnx")
 
 
-def _wait_ready(client, timeout=10.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if client.get("/readyz").status_code == 200:
-            return
-        time.sleep(0.01)
-    raise AssertionError(f"not ready after {timeout} s: {client.get('/readyz').text}")
-
-
 @pytest.fixture(scope="module")
 def client(model_path):
     app = create_app(ServeSettings(model_path=str(model_path), max_body_bytes=2_000_000,
                                    max_image_pixels=200_000))
     with TestClient(app) as c:
-        _wait_ready(c)
+        wait_app_ready(c)
         yield c
 
 
@@ -52,10 +42,10 @@ IMAGES = synthetic_images(SIZE)
 
 
 def _expected(images=IMAGES, calib=None):
-    class Meta:
-        cameras = CAMERAS
-        default_calibration = default_rig(480, 270)
-    K, T = calibration_for_sizes(calib, Meta, [(im.shape[1], im.shape[0]) for im in images])
+    """The grid the server must answer, computed with the contract directly (calib None: the fake model's default
+    calibration, 480x270)."""
+    cal = validate_calibration(default_rig(480, 270) if calib is None else calib, CAMERAS)
+    K, T = cal.arrays_for([(im.shape[1], im.shape[0]) for im in images])
     return fake_reference(np.stack(images), K, T)
 
 
@@ -149,7 +139,7 @@ def test_graph_with_a_fixed_image_size_gets_resized_images(tmp_path):
     path = build_fake_model(tmp_path / "fixed.onnx", fixed_hw=(54, 96))
     big = synthetic_images((192, 108))
     with TestClient(create_app(ServeSettings(model_path=str(path)))) as c:
-        _wait_ready(c)
+        wait_app_ready(c)
         shrunk = [cv2.resize(im, SIZE, interpolation=cv2.INTER_AREA) for im in big]
         np.testing.assert_array_equal(_grid(c.post("/v1/occupancy", files=image_files(big))), _expected(shrunk))
 
@@ -300,6 +290,9 @@ def test_openapi_documents_routes_parts_and_binary_responses(client):
     assert "X-Occupancy-Shape" in ok["headers"]
     assert {"400", "401", "406", "413", "415", "422", "503"} <= set(post["responses"])
     assert "text/plain" in spec["paths"]["/metrics"]["get"]["responses"]["200"]["content"]
+    metadata = spec["paths"]["/v1/metadata"]["get"]["responses"]["200"]["content"]["application/json"]["schema"]
+    assert metadata["$ref"] == "#/components/schemas/Metadata"
+    assert {"ErrorResponse", "OccupancyJSON", "Health", "Ready"} <= set(spec["components"]["schemas"])
 
 
 # ---------------------------------------------------------------- start-up, readiness, API key
@@ -317,14 +310,14 @@ def test_readyz_waits_for_the_warm_up_inference(model_path):
         r = c.post("/v1/occupancy", files=image_files(IMAGES))
         assert_error(r, 503, "not_ready")
         release.set()
-        _wait_ready(c)
+        wait_app_ready(c)
         assert_valid_request(c)
 
 
 def test_api_key_required_except_for_probes(model_path):
     app = create_app(ServeSettings(model_path=str(model_path), api_key="s3cret-key"))
     with TestClient(app) as c:
-        _wait_ready(c)
+        wait_app_ready(c)
         assert c.get("/healthz").status_code == 200
         for path in ("/v1/metadata", "/metrics", "/openapi.json"):
             assert_error(c.get(path), 401, "unauthorized")
@@ -363,14 +356,14 @@ def test_serve_never_imports_torch(model_path):
 import sys
 from starlette.testclient import TestClient
 from occflownet.serve.app import create_app
+from occflownet.serve.client import wait_ready
 from occflownet.serve.settings import ServeSettings
 app = create_app(ServeSettings(model_path={str(model_path)!r}))
 with TestClient(app) as c:
-    import time
-    for _ in range(500):
-        if c.get('/readyz').status_code == 200:
-            break
-        time.sleep(0.01)
+    def get(path):
+        r = c.get(path)
+        return r.status_code, r.content
+    wait_ready('', 5, get=get, interval=0.01)
     import numpy as np, cv2
     img = cv2.imencode('.png', np.zeros((54, 96, 3), np.uint8))[1].tobytes()
     files = {{cam: (cam + '.png', img, 'image/png') for cam in {list(CAMERAS)!r}}}

@@ -14,9 +14,10 @@ import httpx
 import numpy as np
 import pytest
 import uvicorn
-from serve_fixtures import build_fake_model, image_files, stop_server, synthetic_images, wait_ready
+from serve_fixtures import build_fake_model, free_port, image_files, stop_server, synthetic_images
 
 from occflownet.serve.app import create_app
+from occflownet.serve.client import wait_ready
 from occflownet.serve.model_runtime import ModelRuntime
 from occflownet.serve.settings import ServeSettings
 
@@ -27,12 +28,6 @@ IMAGES = synthetic_images((96, 54))
 @pytest.fixture(scope="module")
 def model_path(tmp_path_factory):
     return build_fake_model(tmp_path_factory.mktemp("serve-server") / "fake.onnx")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @contextmanager

@@ -1,4 +1,5 @@
-"""Unit tests of serve/ pieces: image headers, calibration, Accept negotiation, encoders, metrics, settings, limits."""
+"""Unit tests of serve/ pieces: image headers, calibration, Accept negotiation, encoders, metrics, settings, limits,
+the ready-wait helper."""
 import asyncio
 import io
 import json
@@ -12,14 +13,15 @@ from serve_fixtures import FRAME_DIR, encode_image, fake_metadata, synthetic_ima
 
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, FREE
 from occflownet.rig import default_rig
-from occflownet.serve.calibration import CalibrationError, calibration_for_sizes, parse_calibration, validate_calibration
-from occflownet.contract import scale_intrinsics
-from occflownet.serve.decode import ImageError, check_header, common_size, decode_image, image_header, intrinsics_for_size
+from occflownet.contract import CalibrationError, ContractError, parse_metadata, scale_intrinsics
+from occflownet.serve.calibration import request_calibration
+from occflownet.serve.client import ServerNotReady, wait_ready
+from occflownet.serve.decode import (ImageError, check_header, common_size, decode_image, image_header,
+                                    intrinsics_for_size)
 from occflownet.pictures import top_down
 from occflownet.serve.encode import NotAcceptable, encode, negotiate
 from occflownet.serve.limits import BodySizeLimitMiddleware, InferenceGate, Saturated
 from occflownet.serve.metrics import Metrics
-from occflownet.serve.model_runtime import ModelLoadError, parse_metadata
 from occflownet.serve.settings import ServeSettings
 
 RGB = synthetic_images((64, 36))[0]
@@ -112,7 +114,7 @@ def test_common_size_decode_into_place_and_intrinsics():
     np.testing.assert_allclose(K2, np.tile(K[1], (6, 1, 1)))         # halved back exactly; the others unchanged
 
 
-# ---------------------------------------------------------------- calibration
+# ---------------------------------------------------------------- calibration of a request (rules: the contract's)
 
 def _calib():
     return default_rig(480, 270)
@@ -121,6 +123,10 @@ def _calib():
 class _Meta:
     cameras = CAMERAS
     default_calibration = default_rig(480, 270)
+
+
+def _part(calib) -> bytes:
+    return json.dumps(calib).encode()
 
 
 @pytest.mark.parametrize("mutate, message", [
@@ -136,35 +142,38 @@ class _Meta:
     (lambda c: c["cameras"]["CAM_FRONT"]["cam2ego"][0].__setitem__(0, 2.0), "not a proper rotation"),
     (lambda c: c.pop("cameras"), "no 'cameras'"),
 ])
-def test_bad_calibrations_are_named(mutate, message):
+def test_bad_calibration_parts_are_named(mutate, message):
     calib = _calib()
     mutate(calib)
     with pytest.raises(CalibrationError, match=message):
-        validate_calibration(calib, CAMERAS)
+        request_calibration(_part(calib), _Meta, [(480, 270)] * 6)
 
 
-def test_parse_calibration_rejects_non_json():
-    with pytest.raises(CalibrationError, match="not valid UTF-8 JSON"):
-        parse_calibration(b"{nope")
-    with pytest.raises(CalibrationError, match="JSON object"):
-        parse_calibration(b"[1, 2]")
+def test_calibration_part_that_is_not_a_json_object_names_the_part():
+    with pytest.raises(CalibrationError, match="calibration part is not valid UTF-8 JSON"):
+        request_calibration(b"{nope", _Meta, [(480, 270)] * 6)
+    with pytest.raises(CalibrationError, match="calibration part must be a JSON object"):
+        request_calibration(b"[1, 2]", _Meta, [(480, 270)] * 6)
 
 
 def test_default_calibration_scaled_for_same_aspect_and_refused_otherwise():
-    K, T = calibration_for_sizes(None, _Meta, [(960, 540)] * 6)
+    K, T = request_calibration(None, _Meta, [(960, 540)] * 6)
     K480 = np.array(_calib()["cameras"]["CAM_FRONT"]["intrinsic"])
     # pixel-centre rule, as predict and the model's preprocessing: f' = 2f, c' = (c + 0.5)·2 − 0.5
-    np.testing.assert_allclose(K[0], [[2 * K480[0, 0], 0, 2 * K480[0, 2] + 0.5], [0, 2 * K480[1, 1], 2 * K480[1, 2] + 0.5],
-                                      [0, 0, 1]], rtol=1e-6)
+    np.testing.assert_allclose(K[0], [[2 * K480[0, 0], 0, 2 * K480[0, 2] + 0.5],
+                                      [0, 2 * K480[1, 1], 2 * K480[1, 2] + 0.5], [0, 0, 1]], rtol=1e-6)
     assert T.dtype == np.float32 and T.shape == (6, 4, 4)
-    with pytest.raises(CalibrationError, match="CAM_FRONT: image is 500x500 .*send a 'calibration' part"):
-        calibration_for_sizes(None, _Meta, [(500, 500)] * 6)
+    with pytest.raises(CalibrationError, match="CAM_FRONT: image is 500x500 but the model's default calibration is "
+                                               "for 480x270 .*send a 'calibration' part"):
+        request_calibration(None, _Meta, [(500, 500)] * 6)
+    with pytest.raises(CalibrationError, match="CAM_FRONT: image is 500x500 but the request's calibration"):
+        request_calibration(_part(_calib()), _Meta, [(500, 500)] * 6)
 
 
 def test_request_calibration_without_size_is_taken_as_is():
     calib = _calib()
     calib.pop("image_size")
-    K, _ = calibration_for_sizes(calib, _Meta, [(123, 77)] * 6)
+    K, _ = request_calibration(_part(calib), _Meta, [(123, 77)] * 6)
     np.testing.assert_allclose(K[0], np.array(calib["cameras"]["CAM_FRONT"]["intrinsic"]), rtol=1e-6)
 
 
@@ -173,7 +182,7 @@ def test_per_camera_image_size_overrides_top_level():
     calib["cameras"]["CAM_BACK"]["image_size"] = [960, 540]
     K480 = np.array(calib["cameras"]["CAM_BACK"]["intrinsic"])
     calib["cameras"]["CAM_BACK"]["intrinsic"] = scale_intrinsics(K480, 2.0, 2.0).tolist()   # for 960x540
-    K, _ = calibration_for_sizes(calib, _Meta, [(480, 270)] * 6)
+    K, _ = request_calibration(_part(calib), _Meta, [(480, 270)] * 6)
     np.testing.assert_allclose(K[3], np.array(_calib()["cameras"]["CAM_BACK"]["intrinsic"]), rtol=1e-6)
 
 
@@ -269,14 +278,14 @@ def test_settings_from_env_and_resolution():
         ServeSettings(max_inflight=-1).resolved()
 
 
-def test_metadata_parsing_errors_name_the_file():
+def test_fake_model_metadata_follows_the_contract():
     props = {k: json.dumps(v) for k, v in fake_metadata().items()}
     md = parse_metadata(props, "m.onnx")
     assert md.grid_shape == (200, 200, 16) and md.cameras == CAMERAS and md.class_colors.shape == (18, 3)
     for broken, message in ((props | {"onnx_contract": '"v2"'}, "speaks 'v1'"),
                             ({k: v for k, v in props.items() if k != "cameras"}, "lacks cameras"),
                             (props | {"class_colors": "[[1, 2, 3]]"}, "class_colors")):
-        with pytest.raises(ModelLoadError, match=f"m.onnx: .*{message}"):
+        with pytest.raises(ContractError, match=f"m.onnx: .*{message}"):
             parse_metadata(broken, "m.onnx")
 
 
@@ -363,3 +372,32 @@ def test_gate_slot_outlives_a_cancelled_request_until_its_inference_ends():
         assert gate.running == 0
         gate.shutdown()
     asyncio.run(scenario())
+
+
+# ---------------------------------------------------------------- waiting for a server
+
+def test_wait_ready_polls_until_200_and_returns_the_body():
+    answers = iter([OSError("connection refused"), (503, b"warming up"), (200, b'{"status": "ready"}')])
+
+    def get(url):
+        assert url == "http://h/readyz"
+        answer = next(answers)
+        if isinstance(answer, Exception):
+            raise answer
+        return answer
+
+    assert wait_ready("http://h", timeout=5, get=get, interval=0) == {"status": "ready"}
+
+
+def test_wait_ready_names_the_last_answer_or_the_exited_process():
+    with pytest.raises(ServerNotReady, match=r"http://h/readyz did not answer 200 within 0.05 s \(last: 503 busy\)"):
+        wait_ready("http://h", timeout=0.05, get=lambda url: (503, b"busy"), interval=0.01)
+
+    class Exited:
+        returncode, stderr = 2, None
+
+        def poll(self):
+            return 2
+
+    with pytest.raises(ServerNotReady, match="server exited with status 2"):
+        wait_ready("http://h", timeout=5, proc=Exited(), get=lambda url: pytest.fail("polled a dead server"))

@@ -10,7 +10,6 @@ import fcntl
 import hashlib
 import os
 import shutil
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -18,7 +17,9 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from serve_fixtures import build_fake_model, image_files, stop_server, synthetic_images, wait_ready
+from serve_fixtures import build_fake_model, free_port, image_files, stop_server, synthetic_images
+
+from occflownet.serve.client import wait_ready
 
 REPO = Path(__file__).resolve().parents[1]
 CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "occflownet"
@@ -88,9 +89,7 @@ def test_serving_venv_has_no_torch_and_serves(serve_venv, tmp_path):
     probe = subprocess.run([str(python), "-c", "import torch"], capture_output=True, text=True, cwd=tmp_path)
     assert probe.returncode != 0 and "No module named 'torch'" in probe.stderr
     model = build_fake_model(tmp_path / "model.onnx")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     proc = subprocess.Popen([str(serve_venv / "bin" / "occflownet"), "serve", "--model", str(model), "--port",
                              str(port), "--no-access-log"], cwd=tmp_path, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
