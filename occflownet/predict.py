@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occflownet.contract import decode_rgb
 from occflownet.occ3d import CAMERAS, FREE, GRID
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -19,14 +20,12 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 # ----------------------------------------------------------------------------------------------- inputs
 def decode_image(data: bytes, name: str = "image") -> np.ndarray:
-    """JPEG/PNG bytes → uint8 RGB [H, W, 3]; ValueError naming ``name`` if it cannot be decoded."""
-    import cv2
-
-    buf = np.frombuffer(data, dtype=np.uint8)
-    bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR) if buf.size else None
-    if bgr is None:
+    """JPEG/PNG bytes → uint8 RGB [H, W, 3] by the contract's rule (:func:`occflownet.contract.decode_rgb`: EXIF
+    orientation ignored); ValueError naming ``name`` if it cannot be decoded."""
+    rgb = decode_rgb(data)
+    if rgb is None:
         raise ValueError(f"{name}: not a decodable JPEG/PNG image")
-    return np.ascontiguousarray(bgr[:, :, ::-1])
+    return rgb
 
 
 def find_camera_images(folder: str | Path) -> dict[str, Path]:

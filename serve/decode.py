@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from occflownet.contract import scale_intrinsics
+from occflownet.contract import decode_rgb, scale_intrinsics
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # JPEG start-of-frame markers (baseline, extended, progressive, lossless, arithmetic); not DHT (C4), JPG (C8), DAC (CC).
@@ -128,19 +128,20 @@ def decode_image(camera: str, data: bytes, max_pixels: int, out: np.ndarray | No
     With ``out`` (uint8 [h, w, 3], e.g. one camera's slice of the frame tensor) the RGB pixels are written there,
     resized to (w, h) when the image's size differs (INTER_AREA when shrinking, INTER_LINEAR when enlarging)."""
     header = check_header(camera, data, max_pixels)
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-    if bgr is None:
+    rgb = decode_rgb(data)                        # the contract's rule: EXIF orientation ignored
+    if rgb is None:
         raise ImageError(camera, f"{header.format.upper()} could not be decoded (corrupt data)")
-    if bgr.shape[:2] != (header.height, header.width):
-        raise ImageError(camera, f"decoded size {bgr.shape[1]}x{bgr.shape[0]} disagrees with the header's "
+    if rgb.shape[:2] != (header.height, header.width):
+        raise ImageError(camera, f"decoded size {rgb.shape[1]}x{rgb.shape[0]} disagrees with the header's "
                                  f"{header.width}x{header.height}")
     if out is None:
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-    if bgr.shape != out.shape:
-        shrink = bgr.shape[0] * bgr.shape[1] > out.shape[0] * out.shape[1]
+        return rgb
+    if rgb.shape == out.shape:
+        out[...] = rgb
+    else:
+        shrink = rgb.shape[0] * rgb.shape[1] > out.shape[0] * out.shape[1]
         method = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
-        bgr = cv2.resize(bgr, (out.shape[1], out.shape[0]), interpolation=method)
-    cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB, dst=out)
+        cv2.resize(rgb, (out.shape[1], out.shape[0]), dst=out, interpolation=method)
     return out
 
 

@@ -134,3 +134,33 @@ def test_load_image_folder_reads_rgb_in_camera_order():
     for i, cam in enumerate(["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT",
                              "CAM_BACK_RIGHT"]):
         assert np.array_equal(images[i], cv2.imread(str(FRAME / f"{cam}.jpg"))[:, :, ::-1])
+
+
+def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """``jpeg`` with an EXIF APP1 segment whose IFD0 holds only the Orientation tag (0x0112)."""
+    import struct
+
+    tiff = (b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1)
+            + struct.pack("<HHIHH", 0x0112, 3, 1, orientation, 0) + struct.pack("<I", 0))
+    app1 = b"Exif\x00\x00" + tiff
+    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(app1) + 2) + app1 + jpeg[2:]
+
+
+def test_exif_orientation_is_ignored_everywhere(tmp_path):
+    """The contract's image rule: pixels as stored, EXIF orientation ignored, in predict, training data and the
+    server alike (the calibration describes the stored pixel grid)."""
+    import cv2
+
+    from occflownet.data.loaders import load_image
+    from occflownet.predict import decode_image
+    from occflownet.serve.decode import decode_image as serve_decode
+
+    img = np.zeros((20, 40, 3), np.uint8)
+    img[:, :20] = (255, 0, 0)                                    # left half red (RGB)
+    ok, buf = cv2.imencode(".jpg", img[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
+    rotated = _with_exif_orientation(buf.tobytes(), 6)          # "rotate 90° clockwise to view"
+    assert cv2.imdecode(np.frombuffer(rotated, np.uint8), cv2.IMREAD_COLOR).shape == (40, 20, 3)  # a viewer rotates
+    (tmp_path / "a.jpg").write_bytes(rotated)
+    for rgb in (decode_image(rotated), load_image(tmp_path, "a.jpg"), serve_decode("CAM_FRONT", rotated, 10_000)):
+        assert rgb.shape == (20, 40, 3)
+        assert rgb[10, 5, 0] > 200 and rgb[10, 35, 0] < 60        # red stays on the left

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occflownet.contract import decode_rgb
 from occflownet.occ3d import FREE, GRID
 from occflownet.data.tables import DatasetError
 
@@ -26,17 +27,16 @@ def _existing(dataroot, rel_path: str, what: str) -> Path:
 
 
 def load_image(dataroot, rel_path: str, expected_size: tuple[int, int] | None = None) -> np.ndarray:
-    """An image file → uint8 [H, W, 3] RGB. ``expected_size`` (width, height): error if the file differs."""
-    import cv2
-
+    """An image file → uint8 [H, W, 3] RGB (the contract's rule: EXIF orientation ignored). ``expected_size``
+    (width, height): error if the file differs."""
     path = _existing(dataroot, rel_path, "image")
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
+    rgb = decode_rgb(path.read_bytes())
+    if rgb is None:
         raise DatasetError(f"{path}: cannot decode image")
-    if expected_size is not None and (bgr.shape[1], bgr.shape[0]) != tuple(expected_size):
-        raise DatasetError(f"{path}: image is {bgr.shape[1]}x{bgr.shape[0]}, the tables say "
+    if expected_size is not None and (rgb.shape[1], rgb.shape[0]) != tuple(expected_size):
+        raise DatasetError(f"{path}: image is {rgb.shape[1]}x{rgb.shape[0]}, the tables say "
                            f"{expected_size[0]}x{expected_size[1]}")
-    return np.ascontiguousarray(bgr[:, :, ::-1])
+    return rgb
 
 
 def load_sample_images(dataroot, sample) -> np.ndarray:
