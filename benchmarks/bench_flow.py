@@ -76,19 +76,29 @@ def main() -> None:
     frames = [t for t in range(-half, half + 1) if t != 0]
     boxes, ego = make_tracks(args.boxes, frames, rng)
     record = box_flows("bench", boxes[0], {t: boxes[t] for t in frames}, ego)
+    arrays = bench_precompute(record, boxes, ego, frames, args)
+    bench_warp(record, arrays, frames, args)
+    bench_disk(record, frames, rng, args)
+
+
+def bench_precompute(record, boxes, ego, frames, args) -> dict:
+    """box_flows once per keyframe (prepare); voxels_in_box per box and flow_moves per sample (data workers).
+    Returns the flow_moves arrays."""
     t_prep = timed(lambda: box_flows("bench", boxes[0], {t: boxes[t] for t in frames}, ego), args.repeat)
     print(f"device={args.device} threads={torch.get_num_threads()} boxes={len(record.box_index)} "
           f"moves={len(record.offset)} frames={frames}")
     print(f"box_flows (precompute, once per keyframe in prepare): {1e3 * t_prep:.2f} ms/keyframe")
-
-    # voxels_in_box: per box, and the whole per-sample preparation (all boxes, all frames) done in a data worker
     t_box = timed(lambda: [voxels_in_box(c, s, q) for c, s, q in zip(record.center, record.size_wlh,
                                                                          record.rotation)], args.repeat)
     t_moves = timed(lambda: flow_moves(record, frames), args.repeat)
     arrays = flow_moves(record, frames)
     print(f"voxels_in_box: {1e3 * t_box / len(record.box_index):.3f} ms/box; flow_moves (all boxes, "
           f"{len(frames)} frames): {1e3 * t_moves:.2f} ms/sample; voxels listed: {len(arrays['voxels'])}")
+    return arrays
 
+
+def bench_warp(record, arrays, frames, args) -> None:
+    """warp_volumes forward (and forward + backward) per frame for both movers, against plain copies."""
     # a prediction where every box's body is predicted as its class
     density = torch.rand(1, *GRID.shape) * 0.2
     logits = torch.randn(1, *GRID.shape, NUM_CLASSES)
@@ -100,7 +110,6 @@ def main() -> None:
     moves = PackedMoves.from_arrays(**arrays).to(args.device)
     source = torch.zeros(len(frames), dtype=torch.long, device=args.device)
     sync = torch.cuda.synchronize if args.device.startswith("cuda") else (lambda: None)
-
     no_moves = PackedMoves.from_arrays(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0))
 
     def copy_only():  # the same call with no boxes: the per-frame copies every temporal frame needs anyway
@@ -130,7 +139,9 @@ def main() -> None:
               f"(moves only ≈ {1e3 * (t_fwd - t_copy) / len(frames):.1f} ms/frame), forward+backward "
               f"{1e3 * t_bwd / len(frames):.1f} ms/frame")
 
-    # disk: one record per file, and many keyframes in one file
+
+def bench_disk(record, frames, rng, args) -> None:
+    """Bytes on disk: one record in its own file, and 200 keyframes in one file."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "one.npz"
         save_flow_records(path, [record])

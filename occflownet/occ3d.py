@@ -50,6 +50,24 @@ CLASS_NAMES: tuple[str, ...] = (
 )
 NUM_CLASSES = 17  # semantic classes 0..16 (free excluded), the width of the semantic logits
 FREE = 17
+# Named class indices (positions in CLASS_NAMES), for code that means one class.
+OTHERS = CLASS_NAMES.index("others")
+BARRIER = CLASS_NAMES.index("barrier")
+BICYCLE = CLASS_NAMES.index("bicycle")
+BUS = CLASS_NAMES.index("bus")
+CAR = CLASS_NAMES.index("car")
+CONSTRUCTION_VEHICLE = CLASS_NAMES.index("construction_vehicle")
+MOTORCYCLE = CLASS_NAMES.index("motorcycle")
+PEDESTRIAN = CLASS_NAMES.index("pedestrian")
+TRAFFIC_CONE = CLASS_NAMES.index("traffic_cone")
+TRAILER = CLASS_NAMES.index("trailer")
+TRUCK = CLASS_NAMES.index("truck")
+DRIVEABLE_SURFACE = CLASS_NAMES.index("driveable_surface")
+OTHER_FLAT = CLASS_NAMES.index("other_flat")
+SIDEWALK = CLASS_NAMES.index("sidewalk")
+TERRAIN = CLASS_NAMES.index("terrain")
+MANMADE = CLASS_NAMES.index("manmade")
+VEGETATION = CLASS_NAMES.index("vegetation")
 
 # RGB colours per class (Occ3D visualisation palette; free is white, never drawn).
 CLASS_COLORS = np.array([

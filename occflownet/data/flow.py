@@ -1,14 +1,14 @@
 """Precomputed occupancy flow of dynamic boxes, one compact record per keyframe (numpy only, no torch).
 
 ``box_flows`` turns the 3D boxes of a keyframe and of its temporal frames (same scene) into a ``FlowRecord``: for
-each dynamic box (class in ``config.DYNAMIC_CLASSES``, centre inside the grid range) and each frame t ≠ 0 where
+each dynamic box (class in ``occ3d.DYNAMIC_CLASSES``, centre inside the grid range) and each frame t ≠ 0 where
 the same instance is annotated, the rigid transform T_box(t) · T_box(0)⁻¹ expressed in the *current ego frame*
 (the ego pose at the keyframe's LiDAR timestamp). Only the box pose at time 0 and the 4×4 transforms are stored;
 the voxels are derived at training time by ``flow_moves`` (``voxels_in_box`` of the enlarged box), so a record
 takes a few KB instead of the official ~260 KB of voxel lists per keyframe.
 
 Box input (plain arrays, per frame, global frame): a mapping with
-  ``instance_token`` [N] str, ``label`` int [N] (Occ3D class, e.g. ``config.category_to_occ3d(category_name)``),
+  ``instance_token`` [N] str, ``label`` int [N] (Occ3D class, e.g. ``occ3d.category_to_occ3d(category_name)``),
   ``center`` float [N, 3] (metres), ``size_wlh`` float [N, 3] (nuScenes w, l, h), ``rotation`` float [N, 4]
   (quaternion (w, x, y, z), box → global). ``boxes_from_annotations`` builds it from nuScenes annotation records.
 """

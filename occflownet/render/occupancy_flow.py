@@ -201,14 +201,37 @@ def warp_volumes(density: torch.Tensor, logits: torch.Tensor, source: torch.Tens
     frame of each sample's current keyframe; an output volume with no moves is a plain copy. This is the stacked
     volume the renderer takes together with a per-ray volume index.
     """
+    source, moves = _checked_warp_inputs(density, logits, source, moves, mover, grid)
+    B, X, Y, Z = density.shape
+    C, V, N = logits.shape[-1], X * Y * Z, source.numel()
+    flat_d, flat_l = density.reshape(B, V), logits.reshape(B, V, C)
+    # Fresh copies [N, V] and [N, V, C] (not views), edited by ONE in-place index_put_ each at the end: the
+    # backward then costs one full-size pass per tensor. Moved and background values are read from the
+    # originals, so their gradients go straight to the B input volumes.
+    out_d = torch.index_select(flat_d, 0, source)
+    out_l = torch.index_select(flat_l, 0, source)
+    if moves.voxels.shape[0] == 0:
+        return out_d.reshape(N, X, Y, Z), out_l.reshape(N, X, Y, Z, C)
+    with torch.no_grad():
+        rows = _selected_sources(flat_l.detach(), source, moves, grid)
+    if rows.numel() == 0:
+        return out_d.reshape(N, X, Y, Z), out_l.reshape(N, X, Y, Z, C)
+    with torch.no_grad():
+        plan = _warp_plan(rows, source, moves, mover, grid)
+    out_d.index_put_((plan.write_n, plan.write_v), _moved_values(flat_d, 0, plan))
+    out_l.index_put_((plan.write_n, plan.write_v), _moved_values(flat_l, C, plan))
+    return out_d.reshape(N, X, Y, Z), out_l.reshape(N, X, Y, Z, C)
+
+
+def _checked_warp_inputs(density, logits, source, moves: PackedMoves, mover, grid: Grid):
+    """Validate ``warp_volumes``' inputs; returns (source long [N] on density's device, moves on that device)."""
     if mover not in MOVERS:
         raise ValueError(f"mover must be one of {MOVERS}, got {mover!r}")
     if density.ndim != 4 or tuple(density.shape[1:]) != tuple(grid.shape):
         raise ValueError(f"density must be [B, {', '.join(map(str, grid.shape))}], got {tuple(density.shape)}")
     if logits.ndim != 5 or logits.shape[:4] != density.shape:
         raise ValueError(f"logits must be [B, X, Y, Z, C] matching density, got {tuple(logits.shape)}")
-    B, X, Y, Z = density.shape
-    C, V = logits.shape[-1], X * Y * Z
+    B = density.shape[0]
     device = density.device
     source = torch.as_tensor(source, dtype=torch.long, device=device).reshape(-1)
     if source.numel() and (int(source.min()) < 0 or int(source.max()) >= B):
@@ -221,72 +244,88 @@ def warp_volumes(density: torch.Tensor, logits: torch.Tensor, source: torch.Tens
     vox = moves.voxels
     if vox.numel() and ((vox < 0).any() or (vox >= torch.tensor(grid.shape, device=device)).any()):
         raise ValueError("moves.voxels must be voxel indices inside the grid")
+    return source, moves
 
-    flat_d, flat_l = density.reshape(B, V), logits.reshape(B, V, C)
-    # Fresh copies [N, V] and [N, V, C] (not views), edited by ONE in-place index_put_ each at the end: the
-    # backward then costs one full-size pass per tensor. Moved and background values are read from the
-    # originals, so their gradients go straight to the B input volumes.
-    out_d = torch.index_select(flat_d, 0, source)
-    out_l = torch.index_select(flat_l, 0, source)
-    if vox.shape[0] == 0:
-        return out_d.reshape(N, X, Y, Z), out_l.reshape(N, X, Y, Z, C)
-    with torch.no_grad():
-        rows = _selected_sources(flat_l.detach(), source, moves, grid)
-    if rows.numel() == 0:
-        return out_d.reshape(N, X, Y, Z), out_l.reshape(N, X, Y, Z, C)
 
-    with torch.no_grad():
-        box = moves.box[rows]
-        vol = moves.volume[box]  # [S] output volume of each moved voxel
-        src_vox = vox[rows]
-        src_key = vol * V + (src_vox[:, 0] * Y + src_vox[:, 1]) * Z + src_vox[:, 2]  # [S], unique, into [N*V]
-        lower = torch.tensor(grid.lower, dtype=torch.float64, device=device)
-        centres = lower + (src_vox.to(torch.float64) + 0.5) * grid.voxel_size
-        T = moves.transforms[box]
-        moved = (T[:, :3, :3] @ centres[:, :, None])[:, :, 0] + T[:, :3, 3]  # [S, 3] ego frame
-        if mover == "nearest":
-            tgt = torch.floor((moved - lower) / grid.voxel_size).long()[:, None, :]  # [S, 1, 3]
-            weight = torch.ones(tgt.shape[:2], dtype=torch.float64, device=device)
-        else:
-            tgt, weight = idw_neighbours(moved, grid)  # [S, 8, 3], [S, 8]
-        shape = torch.tensor(grid.shape, device=device)
-        valid = ((tgt >= 0) & (tgt < shape)).all(-1) & (weight > 0)  # [S, P]
-        arrival, corner = torch.nonzero(valid, as_tuple=True)  # entries: source row, neighbour
-        t_vox = tgt[arrival, corner]
-        tgt_key = vol[arrival] * V + (t_vox[:, 0] * Y + t_vox[:, 1]) * Z + t_vox[:, 2]
-        alpha = weight[arrival, corner]
-        targets, inverse = torch.unique(tgt_key, return_inverse=True)  # [U] keys into [N*V]
-        coverage = torch.zeros(targets.numel(), dtype=torch.float64, device=device).index_add_(0, inverse, alpha)
-        beta = coverage.clamp(max=1.0)
-        share = alpha / coverage[inverse]  # normalised weight of each arrival
-        # background at a target: the copy after clearing → 0 where the target is itself a moved source
-        keep_base = (~torch.isin(targets, src_key)).to(torch.float64) * (1.0 - beta)
-        cleared = src_key[~torch.isin(src_key, targets)]  # vacated and not refilled → plain zeros
-        # rows of the B inputs to read: the moved sources, then the targets' backgrounds
-        read_key = torch.cat([src_key, targets])
-        read_n = read_key // V
-        read_b, read_v = source[read_n], read_key % V
-        write_key = torch.cat([targets, cleared])
-        write_n, write_v = write_key // V, write_key % V
-        S, U = src_key.numel(), targets.numel()
+class _WarpPlan(NamedTuple):
+    """Where the moved voxels go (all index work, no gradients). S moved sources, U targets; keys index [N·V].
 
-    def moved_values(flat, channels):
-        """New values at the targets: β · (weighted mean of arrivals) + (1 − β) · background (per channel)."""
-        read = flat[read_b, read_v]  # [S + U] or [S + U, C]
-        src, base = read[:S], read[S:]
-        w = share.to(flat.dtype)
-        if channels:
-            w, bg = w[:, None], keep_base.to(flat.dtype)[:, None]
-            scaled = torch.zeros(U, channels, dtype=flat.dtype, device=device)
-        else:
-            bg = keep_base.to(flat.dtype)
-            scaled = torch.zeros(U, dtype=flat.dtype, device=device)
-        mean = scaled.index_add(0, inverse, w * src[arrival])
-        b = beta.to(flat.dtype)[:, None] if channels else beta.to(flat.dtype)
-        new = b * mean + bg * base
-        zeros = torch.zeros((cleared.numel(),) + new.shape[1:], dtype=flat.dtype, device=device)
-        return torch.cat([new, zeros])
+    read_b, read_v [S + U]: input volume and voxel to read (the sources, then the targets' backgrounds);
+    arrival [A]: source row of each (source, neighbour) arrival, inverse [A]: its target; share [A]: its weight
+    normalised by the target's coverage; beta [U] = min(coverage, 1); keep_base [U]: background weight (0 where
+    the target is itself a moved source); write_n, write_v [U + K]: output volume and voxel of the targets, then of
+    the K vacated sources that nothing refills (written as zeros)."""
 
-    out_d.index_put_((write_n, write_v), moved_values(flat_d, 0))
-    out_l.index_put_((write_n, write_v), moved_values(flat_l, C))
-    return out_d.reshape(N, X, Y, Z), out_l.reshape(N, X, Y, Z, C)
+    read_b: torch.Tensor
+    read_v: torch.Tensor
+    arrival: torch.Tensor
+    inverse: torch.Tensor
+    share: torch.Tensor
+    beta: torch.Tensor
+    keep_base: torch.Tensor
+    write_n: torch.Tensor
+    write_v: torch.Tensor
+    num_sources: int
+    num_targets: int
+    num_cleared: int
+
+
+def _warp_plan(rows: torch.Tensor, source: torch.Tensor, moves: PackedMoves, mover, grid: Grid) -> _WarpPlan:
+    """Targets and weights of the selected source voxels ``rows`` (``_selected_sources``) under ``mover``."""
+    X, Y, Z = grid.shape
+    V = X * Y * Z
+    device = source.device
+    box = moves.box[rows]
+    vol = moves.volume[box]  # [S] output volume of each moved voxel
+    src_vox = moves.voxels[rows]
+    src_key = vol * V + (src_vox[:, 0] * Y + src_vox[:, 1]) * Z + src_vox[:, 2]  # [S], unique, into [N*V]
+    lower = torch.tensor(grid.lower, dtype=torch.float64, device=device)
+    centres = lower + (src_vox.to(torch.float64) + 0.5) * grid.voxel_size
+    T = moves.transforms[box]
+    moved = (T[:, :3, :3] @ centres[:, :, None])[:, :, 0] + T[:, :3, 3]  # [S, 3] ego frame
+    if mover == "nearest":
+        tgt = torch.floor((moved - lower) / grid.voxel_size).long()[:, None, :]  # [S, 1, 3]
+        weight = torch.ones(tgt.shape[:2], dtype=torch.float64, device=device)
+    else:
+        tgt, weight = idw_neighbours(moved, grid)  # [S, 8, 3], [S, 8]
+    shape = torch.tensor(grid.shape, device=device)
+    valid = ((tgt >= 0) & (tgt < shape)).all(-1) & (weight > 0)  # [S, P]
+    arrival, corner = torch.nonzero(valid, as_tuple=True)  # entries: source row, neighbour
+    t_vox = tgt[arrival, corner]
+    tgt_key = vol[arrival] * V + (t_vox[:, 0] * Y + t_vox[:, 1]) * Z + t_vox[:, 2]
+    alpha = weight[arrival, corner]
+    targets, inverse = torch.unique(tgt_key, return_inverse=True)  # [U] keys into [N*V]
+    coverage = torch.zeros(targets.numel(), dtype=torch.float64, device=device).index_add_(0, inverse, alpha)
+    beta = coverage.clamp(max=1.0)
+    share = alpha / coverage[inverse]  # normalised weight of each arrival
+    # background at a target: the copy after clearing → 0 where the target is itself a moved source
+    keep_base = (~torch.isin(targets, src_key)).to(torch.float64) * (1.0 - beta)
+    cleared = src_key[~torch.isin(src_key, targets)]  # vacated and not refilled → plain zeros
+    # rows of the B inputs to read: the moved sources, then the targets' backgrounds
+    read_key = torch.cat([src_key, targets])
+    read_n = read_key // V
+    read_b, read_v = source[read_n], read_key % V
+    write_key = torch.cat([targets, cleared])
+    write_n, write_v = write_key // V, write_key % V
+    return _WarpPlan(read_b, read_v, arrival, inverse, share, beta, keep_base, write_n, write_v, src_key.numel(),
+                     targets.numel(), cleared.numel())
+
+
+def _moved_values(flat: torch.Tensor, channels: int, plan: _WarpPlan) -> torch.Tensor:
+    """New values at the targets: β · (weighted mean of arrivals) + (1 − β) · background (per channel), then zeros
+    for the vacated voxels; ``flat`` [B, V] (channels 0) or [B, V, C]."""
+    S, U, device = plan.num_sources, plan.num_targets, flat.device
+    read = flat[plan.read_b, plan.read_v]  # [S + U] or [S + U, C]
+    src, base = read[:S], read[S:]
+    w = plan.share.to(flat.dtype)
+    if channels:
+        w, bg = w[:, None], plan.keep_base.to(flat.dtype)[:, None]
+        scaled = torch.zeros(U, channels, dtype=flat.dtype, device=device)
+    else:
+        bg = plan.keep_base.to(flat.dtype)
+        scaled = torch.zeros(U, dtype=flat.dtype, device=device)
+    mean = scaled.index_add(0, plan.inverse, w * src[plan.arrival])
+    b = plan.beta.to(flat.dtype)[:, None] if channels else plan.beta.to(flat.dtype)
+    new = b * mean + bg * base
+    zeros = torch.zeros((plan.num_cleared,) + new.shape[1:], dtype=flat.dtype, device=device)
+    return torch.cat([new, zeros])

@@ -34,6 +34,17 @@ def _shape(kind: str, rng: np.random.Generator, attribute: str):
     """(w, l, h) and parts [(center, half, color, texture)] of one object of ``kind``."""
     body = instance_color(MATERIALS[kind].color, rng)
     p: list = []
+    if kind in VEHICLES:
+        l, w, h = _vehicle_parts(p, kind, rng, body)
+    elif kind in _SMALL_KINDS:
+        l, w, h = _small_parts(p, kind, rng, body, attribute)
+    else:
+        raise ValueError(f"unknown agent kind {kind!r}")
+    return (w, l, h), p
+
+
+def _vehicle_parts(p: list, kind: str, rng: np.random.Generator, body) -> tuple[float, float, float]:
+    """Parts of a car, truck, bus, trailer or construction vehicle appended to ``p``; returns (l, w, h)."""
     if kind == "car":
         l, w, h = rng.uniform(3.9, 4.9), rng.uniform(1.75, 2.0), rng.uniform(1.45, 1.75)
         hb = 0.6 * h
@@ -55,14 +66,22 @@ def _shape(kind: str, rng: np.random.Generator, attribute: str):
         l, w, h = rng.uniform(6.0, 11.0), 2.5, rng.uniform(3.0, 3.8)
         _part(p, -l / 4, 0, 0.0, 1.0, l / 2, w - 0.3, TYRE, TEX_DARK)
         _part(p, 0, 0, 1.0, h, l, w, body)
-    elif kind == "construction":
+    else:  # construction
         l, w, h = rng.uniform(5.5, 7.0), 2.6, rng.uniform(3.0, 3.5)
         _part(p, -0.1 * l, 0, 0.0, 0.9, 0.7 * l, w, TYRE, TEX_DARK)
         _part(p, -0.1 * l, 0, 0.9, 2.0, 0.7 * l, w - 0.2, body)
         _part(p, -0.2 * l, 0.3, 2.0, h, 1.8, 1.6, GLASS, TEX_GLASS)
         _part(p, 0.3 * l - 0.1, -0.4, 2.2, 2.7, 0.4 * l, 0.4, body * 0.8)
         _part(p, l / 2 - 0.4, 0, 0.2, 1.2, 0.8, w, body * 0.7)
-    elif kind == "motorcycle":
+    return l, w, h
+
+
+_SMALL_KINDS = ("motorcycle", "bicycle", "pedestrian", "barrier", "traffic_cone", "pushable")
+
+
+def _small_parts(p: list, kind: str, rng: np.random.Generator, body, attribute: str) -> tuple[float, float, float]:
+    """Parts of a cycle, a pedestrian or a movable object appended to ``p``; returns (l, w, h)."""
+    if kind == "motorcycle":
         l, w, h = rng.uniform(1.9, 2.3), rng.uniform(0.7, 0.9), rng.uniform(1.4, 1.6)
         _part(p, 0, 0, 0.0, 0.95, l, 0.4, body)
         _part(p, -0.15, 0, 0.95, h, 0.5, w, body * 0.5)
@@ -86,12 +105,10 @@ def _shape(kind: str, rng: np.random.Generator, attribute: str):
         h = rng.uniform(0.7, 0.8)
         _part(p, 0, 0, 0.0, 0.05, l, w, body * 0.5)
         _part(p, 0, 0, 0.05, h, 0.24, 0.24, body, TEX_STRIPES)
-    elif kind == "pushable":
+    else:  # pushable
         l, w, h = rng.uniform(0.55, 0.8), rng.uniform(0.55, 0.8), rng.uniform(0.9, 1.2)
         _part(p, 0, 0, 0.0, h, l, w, body)
-    else:
-        raise ValueError(f"unknown agent kind {kind!r}")
-    return (w, l, h), p
+    return l, w, h
 
 
 def make_agent(kind: str, rng: np.random.Generator, origin, heading: float, speed: float, attribute: str) -> Agent:

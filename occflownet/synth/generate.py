@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.occ3d import CAMERAS, LIDAR
+from occflownet.occ3d import CAMERAS, DRIVEABLE_SURFACE, LIDAR
 from occflownet.geometry import yaw_to_quaternion
 from occflownet.synth.frame import Keyframe, SensorRig, render_keyframe
 from occflownet.synth.layout import WorldConfig, build_world
@@ -86,66 +86,81 @@ def generate(out, scenes: int = 1, frames: int = 6, seed: int = 0, width: int = 
     for s in range(scenes):
         world = build_world(config, seed, s, frames)
         first_world = first_world or world
-        key = f"scene{s}"
-        logfile = f"n{seed % 1000:03d}-2018-08-{1 + s % 28:02d}-synth-{s:04d}"
-        log_tok = token(seed, key, "log")
-        log_tokens.append(log_tok)
-        tables.t["log"].append({"token": log_tok, "logfile": logfile, "vehicle": "synth-ego",
-                                "date_captured": f"2018-08-{1 + s % 28:02d}", "location": "synth-city"})
-        cs = calibrated_sensor_records(tables, key, rig.intrinsics, rig.cam2ego, rig.lidar2ego)
-        t0 = FIRST_TIMESTAMP_US + s * 1_000_000_000
-        samples, channel_sd = [], {ch: [] for ch in (*CAMERAS, LIDAR)}
-        ann_by_agent: dict[int, list[dict]] = {}
-        for k in range(frames):
-            kf = render_keyframe(world, k, rig, t0, seed, s)
-            sample_tok = token(seed, key, "sample", k)
-            samples.append({"token": sample_tok, "timestamp": kf.lidar_time_us, "scene_token": token(seed, key)})
-            records = _sensor_records(root, version, tables, rig, kf, key, k, logfile, sample_tok, cs, cv2)
-            for ch, rec in records.items():
-                channel_sd[ch].append(rec)
-            for idx, ann in _annotations(world, kf, key, k, sample_tok, tables).items():
-                ann_by_agent.setdefault(idx, []).append(ann)
-            write_labels_npz(root / "gts" / world.name / sample_tok / "labels.npz", kf.semantics, kf.mask_lidar,
-                             kf.mask_camera)
-            if preview:
-                from occflownet.synth.preview import preview_image
-
-                (root / "preview").mkdir(parents=True, exist_ok=True)
-                cv2.imwrite(str(root / "preview" / f"{sample_tok}.png"),
-                            cv2.cvtColor(preview_image(kf, rig), cv2.COLOR_RGB2BGR))
-            bar.update(1)
-        link(samples)
-        tables.t["sample"] += samples
-        for recs in channel_sd.values():
-            link(recs)
-            tables.t["sample_data"] += recs
-        for idx in sorted(ann_by_agent):
-            anns = ann_by_agent[idx]
-            link(anns)
-            tables.t["sample_annotation"] += anns
-            tables.t["instance"].append({
-                "token": anns[0]["instance_token"], "category_token": tables.category_token(world.agents[idx].raw),
-                "nbr_annotations": len(anns), "first_annotation_token": anns[0]["token"],
-                "last_annotation_token": anns[-1]["token"]})
-        tables.t["scene"].append({
-            "token": token(seed, key), "log_token": log_tok, "nbr_samples": len(samples),
-            "first_sample_token": samples[0]["token"], "last_sample_token": samples[-1]["token"],
-            "name": world.name, "description": _describe(world, seed)})
+        log_tokens.append(_write_scene(root, version, tables, rig, world, seed, s, frames, preview, bar, cv2))
         scene_names.append(world.name)
     bar.close()
-
-    map_tok = token(seed, "map")
-    (root / "maps").mkdir(parents=True, exist_ok=True)
-    drivable = (first_world.ground.cls[::10, ::10] == 11).astype(np.uint8) * 255
-    cv2.imwrite(str(root / "maps" / f"{map_tok}.png"), drivable)
-    tables.t["map"] = [{"token": map_tok, "log_tokens": log_tokens, "category": "semantic_prior",
-                        "filename": f"maps/{map_tok}.png"}]
+    _write_map(root, tables, seed, first_world, log_tokens, cv2)
     tables.write(root / version)
     splits = {"train": scene_names[:-1], "val": scene_names[-1:]} if scenes >= 2 else \
         {"train": scene_names, "val": scene_names}
     with open(root / version / "splits.json", "w") as f:
         json.dump(splits, f, indent=1)
     return SynthResult(root, version, scene_names, scenes * frames, time.perf_counter() - start)
+
+
+def _write_scene(root, version, tables, rig, world, seed, s, frames, preview, bar, cv2) -> str:
+    """Render scene ``s`` keyframe by keyframe, write its files and add its table records; returns its log token."""
+    key = f"scene{s}"
+    logfile = f"n{seed % 1000:03d}-2018-08-{1 + s % 28:02d}-synth-{s:04d}"
+    log_tok = token(seed, key, "log")
+    tables.t["log"].append({"token": log_tok, "logfile": logfile, "vehicle": "synth-ego",
+                            "date_captured": f"2018-08-{1 + s % 28:02d}", "location": "synth-city"})
+    cs = calibrated_sensor_records(tables, key, rig.intrinsics, rig.cam2ego, rig.lidar2ego)
+    t0 = FIRST_TIMESTAMP_US + s * 1_000_000_000
+    samples, channel_sd = [], {ch: [] for ch in (*CAMERAS, LIDAR)}
+    ann_by_agent: dict[int, list[dict]] = {}
+    for k in range(frames):
+        kf = render_keyframe(world, k, rig, t0, seed, s)
+        sample_tok = token(seed, key, "sample", k)
+        samples.append({"token": sample_tok, "timestamp": kf.lidar_time_us, "scene_token": token(seed, key)})
+        records = _sensor_records(root, version, tables, rig, kf, key, k, logfile, sample_tok, cs, cv2)
+        for ch, rec in records.items():
+            channel_sd[ch].append(rec)
+        for idx, ann in _annotations(world, kf, key, k, sample_tok, tables).items():
+            ann_by_agent.setdefault(idx, []).append(ann)
+        write_labels_npz(root / "gts" / world.name / sample_tok / "labels.npz", kf.semantics, kf.mask_lidar,
+                         kf.mask_camera)
+        if preview:
+            from occflownet.synth.preview import preview_image
+
+            (root / "preview").mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(root / "preview" / f"{sample_tok}.png"),
+                        cv2.cvtColor(preview_image(kf, rig), cv2.COLOR_RGB2BGR))
+        bar.update(1)
+    _link_scene(tables, world, seed, key, log_tok, samples, channel_sd, ann_by_agent)
+    return log_tok
+
+
+def _link_scene(tables, world, seed, key, log_tok, samples, channel_sd, ann_by_agent) -> None:
+    """Chain one scene's samples, sample_data and annotations (prev/next) and add them, its instances and the
+    scene record to the tables."""
+    link(samples)
+    tables.t["sample"] += samples
+    for recs in channel_sd.values():
+        link(recs)
+        tables.t["sample_data"] += recs
+    for idx in sorted(ann_by_agent):
+        anns = ann_by_agent[idx]
+        link(anns)
+        tables.t["sample_annotation"] += anns
+        tables.t["instance"].append({
+            "token": anns[0]["instance_token"], "category_token": tables.category_token(world.agents[idx].raw),
+            "nbr_annotations": len(anns), "first_annotation_token": anns[0]["token"],
+            "last_annotation_token": anns[-1]["token"]})
+    tables.t["scene"].append({
+        "token": token(seed, key), "log_token": log_tok, "nbr_samples": len(samples),
+        "first_sample_token": samples[0]["token"], "last_sample_token": samples[-1]["token"],
+        "name": world.name, "description": _describe(world, seed)})
+
+
+def _write_map(root, tables, seed, first_world, log_tokens, cv2) -> None:
+    """The map table and its drivable-area mask PNG (1 px = 1 m) of the first scene."""
+    map_tok = token(seed, "map")
+    (root / "maps").mkdir(parents=True, exist_ok=True)
+    drivable = (first_world.ground.cls[::10, ::10] == DRIVEABLE_SURFACE).astype(np.uint8) * 255
+    cv2.imwrite(str(root / "maps" / f"{map_tok}.png"), drivable)
+    tables.t["map"] = [{"token": map_tok, "log_tokens": log_tokens, "category": "semantic_prior",
+                        "filename": f"maps/{map_tok}.png"}]
 
 
 def _sensor_records(root, version, tables, rig, kf: Keyframe, key, k, logfile, sample_tok, cs, cv2) -> dict:

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from occflownet.occ3d import DRIVEABLE_SURFACE, OTHER_FLAT, SIDEWALK, TERRAIN
 from occflownet.synth.agents import default_attribute, instance_color, make_agent
 from occflownet.synth.materials import MATERIALS, PAINT_WHITE, PAINT_YELLOW
 from occflownet.synth.world import Boxes, GroundRaster, World, scene_to_global
@@ -62,7 +63,7 @@ class _Raster:
     def __init__(self, x0, x1, y0, y1, res):
         self.x0, self.y0, self.res = x0, y0, res
         nx, ny = int(np.ceil((x1 - x0) / res)), int(np.ceil((y1 - y0) / res))
-        self.cls = np.full((nx, ny), 14, np.uint8)  # terrain everywhere first
+        self.cls = np.full((nx, ny), TERRAIN, np.uint8)  # terrain everywhere first
         self.paint = np.zeros((nx, ny), np.uint8)
 
     def _idx(self, v, origin, n):
@@ -74,6 +75,32 @@ class _Raster:
         arr[i0:i1, j0:j1] = value
 
 
+@dataclass
+class _Road:
+    """The main road's cross-section (scene-frame y, per side s = -1 right, +1 left) and the optional cross street
+    (at x = xc, half width ``cross_half``; ``corridor`` = its x range including its sidewalks, (inf, inf) if none)."""
+
+    x_min: float
+    x_max: float
+    y_half: float
+    n_lanes: int
+    lane_w: float
+    median: float  # width of the central median (0: a yellow double line instead)
+    parking: dict  # side → has a parking lane
+    main_parking: int  # the side whose parking lane holds every vehicle kind
+    road_edge: dict  # side → |y| of the kerb
+    sidewalk_w: float
+    lot_front: dict  # side → |y| where the lots begin (back of the sidewalk)
+    cross: bool
+    xc: float | None
+    cross_half: float
+    corridor: tuple[float, float]
+
+    def in_cross(self, x0, x1):
+        """Whether [x0, x1] overlaps the cross street's corridor."""
+        return self.cross and x1 > self.corridor[0] and x0 < self.corridor[1]
+
+
 def build_world(config: WorldConfig, seed: int, scene_index: int, frames: int) -> World:
     """Draw one scene. The ego starts at scene (0, lane y) and drives +x for ``frames`` keyframes."""
     rng = np.random.default_rng([int(seed), int(scene_index)])
@@ -81,10 +108,27 @@ def build_world(config: WorldConfig, seed: int, scene_index: int, frames: int) -
     ego_speed = rng.uniform(*config.ego_speed)
     path = ego_speed * KEYFRAME_INTERVAL_S * max(frames - 1, 0)
     m = config.margin
-    x_min, x_max, y_half = -m, path + m, m
-    ras = _Raster(x_min, x_max, -y_half, y_half, config.raster_res)
+    road = _draw_road(rng, config, path, -m, path + m, m)
+    ras = _Raster(road.x_min, road.x_max, -road.y_half, road.y_half, config.raster_res)
+    _ground_classes(ras, road)
+    _road_paint(ras, road)
+    _roadside(b, ras, rng, road, path)
+    ego_y = _road_users(b, rng, config, road, ego_speed, path)
 
-    # --- cross-section of the main road (y): median, lanes, parking lanes, sidewalks -------------------------
+    yaw = rng.uniform(-np.pi, np.pi)
+    offset = rng.uniform(300.0, 1800.0, 2)
+    sun_az, sun_el = rng.uniform(-np.pi, np.pi), np.radians(rng.uniform(30.0, 60.0))
+    sun = np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])
+    ground = GroundRaster(ras.cls, ras.paint, road.x_min, -road.y_half, config.raster_res)
+    meta = {"lanes": road.n_lanes, "cross_street": bool(road.cross), "path_m": float(path),
+            "extent_x": (road.x_min, road.x_max), "extent_y": (-road.y_half, road.y_half)}
+    return World(name=f"scene-{scene_index + 1:04d}", scene2global=scene_to_global(yaw, offset), ground=ground,
+                 static=b.static_boxes(), agents=b.agents, ego_start=np.array([0.0, ego_y]), ego_speed=ego_speed,
+                 sun=sun, sky_seed=int(rng.integers(1 << 30)), meta=meta)
+
+
+def _draw_road(rng, config: WorldConfig, path, x_min, x_max, y_half) -> _Road:
+    """Cross-section of the main road (y): median, lanes, parking lanes, sidewalks; then maybe a cross street."""
     n_lanes = int(rng.integers(config.lanes[0], config.lanes[1] + 1))
     lane_w = rng.uniform(3.2, 3.7)
     median = rng.uniform(1.5, 3.0) if (n_lanes >= 2 and rng.random() < 0.6) else 0.0
@@ -99,86 +143,93 @@ def build_world(config: WorldConfig, seed: int, scene_index: int, frames: int) -
     xc = rng.uniform(-10.0, path + 40.0) if cross else None
     cross_half = rng.uniform(3.2, 4.5) if cross else 0.0
     corridor = (xc - cross_half - sidewalk_w, xc + cross_half + sidewalk_w) if cross else (np.inf, np.inf)
+    return _Road(x_min, x_max, y_half, n_lanes, lane_w, median, parking, main_parking, road_edge, sidewalk_w,
+                 lot_front, cross, xc, cross_half, corridor)
 
-    for s in (-1, 1):
-        lo, hi = sorted((s * road_edge[s], s * lot_front[s]))
-        ras.fill(ras.cls, x_min, x_max, lo, hi, 13)
-    if cross:
-        ras.fill(ras.cls, corridor[0], corridor[1], -y_half, y_half, 13)
-        ras.fill(ras.cls, xc - cross_half, xc + cross_half, -y_half, y_half, 11)
-    ras.fill(ras.cls, x_min, x_max, -road_edge[-1], road_edge[1], 11)
-    if median:
-        ras.fill(ras.cls, x_min, x_max, -median / 2, median / 2, 12)
-        if cross:
-            ras.fill(ras.cls, xc - cross_half, xc + cross_half, -median / 2, median / 2, 11)
 
-    # --- paint: lane lines, centre line, crosswalks, stop lines ------------------------------------------------
-    in_cross = (lambda x0, x1: cross and x1 > corridor[0] and x0 < corridor[1])
+def _ground_classes(ras: _Raster, road: _Road) -> None:
+    """Sidewalks, the road surface (both streets) and the median into the class raster (terrain elsewhere)."""
+    r = road
     for s in (-1, 1):
-        for k in range(1, n_lanes):  # dashed lines between lanes of one direction
-            y = s * (median / 2 + k * lane_w)
-            for x in np.arange(x_min, x_max, 9.0):
-                if not in_cross(x, x + 3):
+        lo, hi = sorted((s * r.road_edge[s], s * r.lot_front[s]))
+        ras.fill(ras.cls, r.x_min, r.x_max, lo, hi, SIDEWALK)
+    if r.cross:
+        ras.fill(ras.cls, r.corridor[0], r.corridor[1], -r.y_half, r.y_half, SIDEWALK)
+        ras.fill(ras.cls, r.xc - r.cross_half, r.xc + r.cross_half, -r.y_half, r.y_half, DRIVEABLE_SURFACE)
+    ras.fill(ras.cls, r.x_min, r.x_max, -r.road_edge[-1], r.road_edge[1], DRIVEABLE_SURFACE)
+    if r.median:
+        ras.fill(ras.cls, r.x_min, r.x_max, -r.median / 2, r.median / 2, OTHER_FLAT)
+        if r.cross:
+            ras.fill(ras.cls, r.xc - r.cross_half, r.xc + r.cross_half, -r.median / 2, r.median / 2,
+                     DRIVEABLE_SURFACE)
+
+
+def _road_paint(ras: _Raster, road: _Road) -> None:
+    """Paint: lane lines, centre line, crosswalks, stop lines."""
+    r = road
+    for s in (-1, 1):
+        for k in range(1, r.n_lanes):  # dashed lines between lanes of one direction
+            y = s * (r.median / 2 + k * r.lane_w)
+            for x in np.arange(r.x_min, r.x_max, 9.0):
+                if not r.in_cross(x, x + 3):
                     ras.fill(ras.paint, x, x + 3.0, y - 0.08, y + 0.08, PAINT_WHITE)
-        y = s * (median / 2 + n_lanes * lane_w)  # solid edge line
-        for x0, x1 in _gaps(x_min, x_max, corridor):
+        y = s * (r.median / 2 + r.n_lanes * r.lane_w)  # solid edge line
+        for x0, x1 in _gaps(r.x_min, r.x_max, r.corridor):
             ras.fill(ras.paint, x0, x1, y - 0.08, y + 0.08, PAINT_WHITE)
-    if not median:
-        for x0, x1 in _gaps(x_min, x_max, corridor):
+    if not r.median:
+        for x0, x1 in _gaps(r.x_min, r.x_max, r.corridor):
             ras.fill(ras.paint, x0, x1, -0.22, -0.08, PAINT_YELLOW)
             ras.fill(ras.paint, x0, x1, 0.08, 0.22, PAINT_YELLOW)
-    if cross:
-        for xs in (corridor[0], corridor[1] - 3.0):  # zebra crossings over the main road
-            for y in np.arange(-road_edge[-1] + 0.3, road_edge[1] - 0.3, 1.0):
+    if r.cross:
+        for xs in (r.corridor[0], r.corridor[1] - 3.0):  # zebra crossings over the main road
+            for y in np.arange(-r.road_edge[-1] + 0.3, r.road_edge[1] - 0.3, 1.0):
                 ras.fill(ras.paint, xs, xs + 3.0, y, y + 0.5, PAINT_WHITE)
-        ras.fill(ras.paint, corridor[0] - 0.6, corridor[0] - 0.2, -road_edge[-1], -median / 2, PAINT_WHITE)
-        ras.fill(ras.paint, corridor[1] + 0.2, corridor[1] + 0.6, median / 2, road_edge[1], PAINT_WHITE)
-        ras.fill(ras.paint, xc - 0.08, xc + 0.08, -y_half, -lot_front[-1], PAINT_YELLOW)
-        ras.fill(ras.paint, xc - 0.08, xc + 0.08, lot_front[1], y_half, PAINT_YELLOW)
+        ras.fill(ras.paint, r.corridor[0] - 0.6, r.corridor[0] - 0.2, -r.road_edge[-1], -r.median / 2, PAINT_WHITE)
+        ras.fill(ras.paint, r.corridor[1] + 0.2, r.corridor[1] + 0.6, r.median / 2, r.road_edge[1], PAINT_WHITE)
+        ras.fill(ras.paint, r.xc - 0.08, r.xc + 0.08, -r.y_half, -r.lot_front[-1], PAINT_YELLOW)
+        ras.fill(ras.paint, r.xc - 0.08, r.xc + 0.08, r.lot_front[1], r.y_half, PAINT_YELLOW)
 
-    # --- lots along both sides: buildings, parks, plazas, one construction site near the ego's path ----------
+
+def _roadside(b: _Builder, ras: _Raster, rng, road: _Road, path) -> None:
+    """Lots along both sides (buildings, parks, plazas, one construction site near the ego's path), street
+    furniture, and bushes on the median."""
+    r = road
     site_side = -1 if rng.random() < 0.5 else 1
-    site_x = _free_x(rng, path / 2 + rng.uniform(-15, 15), 14.0, corridor)
+    site_x = _free_x(rng, path / 2 + rng.uniform(-15, 15), 14.0, r.corridor)
     for s in (-1, 1):
-        x = x_min
-        while x < x_max - 6.0:
+        x = r.x_min
+        while x < r.x_max - 6.0:
             length = rng.uniform(10.0, 32.0)
-            if x + length > corridor[0] and x < corridor[1]:
-                x = corridor[1] + 0.5
+            if x + length > r.corridor[0] and x < r.corridor[1]:
+                x = r.corridor[1] + 0.5
                 continue
             if s == site_side and x <= site_x < x + length + 14.0:
-                _construction_site(b, ras, s, site_x, lot_front[s], sidewalk_w)
+                _construction_site(b, ras, s, site_x, r.lot_front[s], r.sidewalk_w)
                 x = site_x + 9.0
                 continue
-            _lot(b, ras, rng, s, x, min(x + length, x_max), lot_front[s])
+            _lot(b, ras, rng, s, x, min(x + length, r.x_max), r.lot_front[s])
             x += length
-        _street_furniture(b, rng, s, x_min, x_max, road_edge[s], sidewalk_w, corridor)
-    if median:
-        for x in np.arange(x_min + rng.uniform(0, 20), x_max, rng.uniform(14, 30)):
-            if not in_cross(x - 2, x + 2):
-                b.box("vegetation", x, 0.0, 0.0, rng.uniform(0.6, 1.1), rng.uniform(1.5, 3.0), median * 0.6)
+        _street_furniture(b, rng, s, r.x_min, r.x_max, r.road_edge[s], r.sidewalk_w, r.corridor)
+    if r.median:
+        for x in np.arange(r.x_min + rng.uniform(0, 20), r.x_max, rng.uniform(14, 30)):
+            if not r.in_cross(x - 2, x + 2):
+                b.box("vegetation", x, 0.0, 0.0, rng.uniform(0.6, 1.1), rng.uniform(1.5, 3.0), r.median * 0.6)
 
-    # --- traffic ------------------------------------------------------------------------------------------------
-    ego_lane = int(rng.integers(0, n_lanes))
-    ego_y = -(median / 2 + (ego_lane + 0.5) * lane_w)
-    _traffic(b, rng, config, x_min, x_max, n_lanes, lane_w, median, ego_lane, ego_speed, path, corridor)
+
+def _road_users(b: _Builder, rng, config: WorldConfig, road: _Road, ego_speed, path) -> float:
+    """Traffic in every lane, parked vehicles, pedestrians, queues on the cross street; returns the ego's lane y."""
+    r = road
+    ego_lane = int(rng.integers(0, r.n_lanes))
+    ego_y = -(r.median / 2 + (ego_lane + 0.5) * r.lane_w)
+    _traffic(b, rng, config, r.x_min, r.x_max, r.n_lanes, r.lane_w, r.median, ego_lane, ego_speed, path, r.corridor)
     for s in (-1, 1):
-        if parking[s]:
-            _parked(b, rng, config, s, x_min, x_max, road_edge[s], path, corridor, every_kind=s == main_parking)
-        _pedestrians(b, rng, config, s, x_min, x_max, road_edge[s], sidewalk_w, corridor)
-    if cross:
-        _cross_traffic(b, rng, config, xc, cross_half, road_edge, y_half)
-
-    yaw = rng.uniform(-np.pi, np.pi)
-    offset = rng.uniform(300.0, 1800.0, 2)
-    sun_az, sun_el = rng.uniform(-np.pi, np.pi), np.radians(rng.uniform(30.0, 60.0))
-    sun = np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])
-    ground = GroundRaster(ras.cls, ras.paint, x_min, -y_half, config.raster_res)
-    meta = {"lanes": n_lanes, "cross_street": bool(cross), "path_m": float(path), "extent_x": (x_min, x_max),
-            "extent_y": (-y_half, y_half)}
-    return World(name=f"scene-{scene_index + 1:04d}", scene2global=scene_to_global(yaw, offset), ground=ground,
-                 static=b.static_boxes(), agents=b.agents, ego_start=np.array([0.0, ego_y]), ego_speed=ego_speed,
-                 sun=sun, sky_seed=int(rng.integers(1 << 30)), meta=meta)
+        if r.parking[s]:
+            _parked(b, rng, config, s, r.x_min, r.x_max, r.road_edge[s], path, r.corridor,
+                    every_kind=s == r.main_parking)
+        _pedestrians(b, rng, config, s, r.x_min, r.x_max, r.road_edge[s], r.sidewalk_w, r.corridor)
+    if r.cross:
+        _cross_traffic(b, rng, config, r.xc, r.cross_half, r.road_edge, r.y_half)
+    return ego_y
 
 
 def _gaps(x0, x1, corridor):
@@ -216,7 +267,7 @@ def _lot(b: _Builder, ras: _Raster, rng, s, x0, x1, front):
             b.box("vegetation", x, y, 0.0, rng.uniform(0.5, 1.5), rng.uniform(1.0, 3.0), rng.uniform(1.0, 3.0))
     elif kind == "plaza":
         lo, hi = sorted((s * front, s * (front + rng.uniform(8.0, 20.0))))
-        ras.fill(ras.cls, x0 + 0.5, x1 - 0.5, lo, hi, 12)
+        ras.fill(ras.cls, x0 + 0.5, x1 - 0.5, lo, hi, OTHER_FLAT)
         for _ in range(int(rng.integers(1, 4))):
             b.box("static_other", rng.uniform(x0 + 1, x1 - 1), s * (front + rng.uniform(1.0, 6.0)), 0.0,
                   rng.uniform(0.8, 2.2), rng.uniform(0.6, 2.5), rng.uniform(0.5, 1.5))
@@ -263,7 +314,7 @@ def _construction_site(b: _Builder, ras: _Raster, s, x, front, sidewalk_w):
     """A fenced site (other_flat ground) with barriers along the sidewalk, cones, and a construction vehicle."""
     rng = b.rng
     lo, hi = sorted((s * front, s * (front + 16.0)))
-    ras.fill(ras.cls, x - 8.0, x + 8.0, lo, hi, 12)
+    ras.fill(ras.cls, x - 8.0, x + 8.0, lo, hi, OTHER_FLAT)
     for bx in np.arange(x - 7.0, x + 7.5, 2.2):
         if abs(bx - x) > 2.2:  # leave a gate in the middle, closed by cones
             b.agent("barrier", bx, s * (front + 0.4), 0.0)

@@ -10,7 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occflownet.occ3d import LIDARSEG_NAMES, LIDARSEG_TO_OCC3D
+from occflownet.occ3d import (BARRIER, BICYCLE, BUS, CAR, CONSTRUCTION_VEHICLE, DRIVEABLE_SURFACE, LIDARSEG_NAMES,
+                              LIDARSEG_TO_OCC3D, MANMADE, MOTORCYCLE, OTHER_FLAT, OTHERS, PEDESTRIAN, SIDEWALK, TERRAIN,
+                              TRAFFIC_CONE, TRAILER, TRUCK, VEGETATION)
 
 # Texture kinds (an int8 per primitive; the renderer switches on these).
 TEX_PLAIN, TEX_FACADE, TEX_FOLIAGE, TEX_GLASS, TEX_DARK, TEX_STRIPES, TEX_BUS = range(7)
@@ -66,7 +68,8 @@ MATERIALS: dict[str, Material] = {
 
 # Voxel class priority when several things overlap one voxel: higher wins (small and dynamic things win over
 # large static things, so thin objects are not swallowed by the ground or a facade).
-_PRIORITY = {15: 1, 16: 2, 0: 3, 1: 4, 8: 5, 9: 6, 10: 6, 3: 6, 5: 6, 4: 7, 6: 7, 2: 7, 7: 8}
+_PRIORITY = {MANMADE: 1, VEGETATION: 2, OTHERS: 3, BARRIER: 4, TRAFFIC_CONE: 5, TRAILER: 6, TRUCK: 6, BUS: 6,
+             CONSTRUCTION_VEHICLE: 6, CAR: 7, MOTORCYCLE: 7, BICYCLE: 7, PEDESTRIAN: 8}
 
 
 def voxel_priority(occ_class: np.ndarray) -> np.ndarray:
@@ -78,7 +81,8 @@ def voxel_priority(occ_class: np.ndarray) -> np.ndarray:
 
 
 # Ground classes (Occ3D index) → ground material name, for the ground raster.
-GROUND_KINDS: dict[int, str] = {11: "driveable", 12: "other_flat", 13: "sidewalk", 14: "terrain"}
+GROUND_KINDS: dict[int, str] = {DRIVEABLE_SURFACE: "driveable", OTHER_FLAT: "other_flat", SIDEWALK: "sidewalk",
+                                TERRAIN: "terrain"}
 GROUND_RAW = np.zeros(256, dtype=np.uint8)
 GROUND_COLOR = np.zeros((256, 3), dtype=np.float32)
 GROUND_REFLECTIVITY = np.zeros(256, dtype=np.float32)

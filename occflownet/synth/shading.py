@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from occflownet.occ3d import DRIVEABLE_SURFACE, OTHER_FLAT, SIDEWALK, TERRAIN
 from occflownet.synth.materials import (GROUND_COLOR, PAINT_COLOR, TEX_BUS, TEX_DARK, TEX_FACADE, TEX_FOLIAGE,
                                         TEX_GLASS, TEX_STRIPES)
 
@@ -44,14 +45,14 @@ def ground_color(cls: np.ndarray, paint: np.ndarray, xy_scene: np.ndarray) -> np
     mult = np.ones(len(cls), np.float32)
     fine = hash2(np.floor(x * 5), np.floor(y * 5), 3)
     broad = value_noise(x * 0.15, y * 0.15, 7)
-    road = cls == 11
+    road = cls == DRIVEABLE_SURFACE
     mult[road] = 0.9 + 0.12 * fine[road] + 0.12 * broad[road]
-    walk = cls == 13
+    walk = cls == SIDEWALK
     joints = (np.abs(x - np.round(x)) < 0.03) | (np.abs(y * 2 - np.round(y * 2)) < 0.06)
     mult[walk] = np.where(joints[walk], 0.78, 0.95 + 0.08 * hash2(np.floor(x), np.floor(y * 2), 5)[walk])
-    grass = cls == 14
+    grass = cls == TERRAIN
     mult[grass] = 0.7 + 0.3 * fine[grass] + 0.35 * broad[grass]
-    flat = cls == 12
+    flat = cls == OTHER_FLAT
     checker = (np.floor(x * 2) + np.floor(y * 2)) % 2
     mult[flat] = 0.92 + 0.1 * checker[flat] + 0.05 * fine[flat]
     col = base * mult[:, None]

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from occflownet.occ3d import LIDARSEG_TO_OCC3D
+from occflownet.occ3d import LIDARSEG_TO_OCC3D, TERRAIN
 from occflownet.geometry import make_transform, rotation_z, transform_points
 
 
@@ -104,14 +104,14 @@ class Agent:
 @dataclass
 class GroundRaster:
     """Class and paint of the flat ground (z = 0), scene frame. ``cls`` uint8 [NX, NY] Occ3D ground classes
-    (11..14), ``paint`` uint8 [NX, NY] (materials.PAINT_*); cell (i, j) covers x0 + i*res .. x0 + (i+1)*res."""
+    (driveable_surface, other_flat, sidewalk, terrain), ``paint`` uint8 [NX, NY] (materials.PAINT_*); cell (i, j) covers x0 + i*res .. x0 + (i+1)*res."""
 
     cls: np.ndarray
     paint: np.ndarray
     x0: float
     y0: float
     res: float
-    outside_class: int = 14
+    outside_class: int = TERRAIN
 
     def lookup(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Scene-frame points [..., 2] → (class uint8 [...], paint uint8 [...]); outside the raster: terrain."""
