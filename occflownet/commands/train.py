@@ -1,18 +1,14 @@
 """`occflownet train`: train a model from a prepared nuScenes-format root (single process or under torchrun)."""
 import argparse
 
-HELP = "train a model (2D rendering, temporal frames, dynamic handling, occupancy flow, optional 3D labels)"
+from occflownet.train.recipe import PRESET_RECIPES
 
-# Per-preset defaults where a CPU preset needs smaller numbers than the official GPU recipe.
-PRESET_DEFAULTS = {
-    "tiny": {"rays_per_step": 4096, "lr": 2e-3, "warmup_steps": 50, "ema_decay": 0.99, "checkpoint_every": 50},
-    "base": {"rays_per_step": 32768, "lr": 1e-4, "warmup_steps": 200, "ema_decay": 0.999, "checkpoint_every": 500},
-    "paper": {"rays_per_step": 32768, "lr": 1e-4, "warmup_steps": 200, "ema_decay": 0.999, "checkpoint_every": 500},
-}
+HELP = "train a model (2D rendering, temporal frames, dynamic handling, occupancy flow, optional 3D labels)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", default="tiny", choices=sorted(PRESET_DEFAULTS))
+    """The options of TrainConfig; those of the preset's recipe (PRESET_RECIPES) default to None = the preset's."""
+    p.add_argument("--preset", default="tiny", choices=sorted(PRESET_RECIPES))
     p.add_argument("--dataroot", required=True, help="nuScenes-format root (run `occflownet prepare` on it first)")
     p.add_argument("--version", default=None, help="table version folder (default: the only one in the root)")
     p.add_argument("--split", default="train")
@@ -40,12 +36,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int, default=1000)
     p.add_argument("--time-limit", type=float, default=0.0, help="stop with a checkpoint after this many seconds")
     p.add_argument("--batch-size", type=int, default=1, help="samples per process per step")
-    p.add_argument("--rays-per-step", type=int, default=None, help="rays per sample per step (official 32768)")
-    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--rays-per-step", type=int, default=None,
+                   help="rays per sample per step (default: the preset's; official 32768)")
+    p.add_argument("--lr", type=float, default=None, help="default: the preset's")
     p.add_argument("--weight-decay", type=float, default=1e-2)
-    p.add_argument("--warmup-steps", type=int, default=None)
-    p.add_argument("--ema-decay", type=float, default=None)
-    p.add_argument("--checkpoint-every", type=int, default=None)
+    p.add_argument("--warmup-steps", type=int, default=None, help="default: the preset's")
+    p.add_argument("--ema-decay", type=float, default=None, help="default: the preset's")
+    p.add_argument("--checkpoint-every", type=int, default=None, help="default: the preset's")
     p.add_argument("--log-every", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--num-workers", type=int, default=2)
@@ -57,14 +54,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args):
+    """The TrainConfig of the parsed options (``--version`` unset: the root's only table version)."""
     from occflownet.data.index import load_index
     from occflownet.train.recipe import TrainConfig
-
-    defaults = PRESET_DEFAULTS[args.preset]
-
-    def pick(name):
-        value = getattr(args, name)
-        return defaults[name] if value is None else value
 
     version = args.version or load_index(args.dataroot, None, check_tables=False).version
     return TrainConfig(
@@ -75,9 +67,9 @@ def config_from_args(args):
         head_init=args.head_init, free_space=args.free_space, free_rays_per_step=args.free_rays_per_step,
         free_space_weight=args.free_space_weight,
         max_steps=args.max_steps, time_limit_s=args.time_limit,
-        batch_size=args.batch_size, rays_per_step=pick("rays_per_step"), lr=pick("lr"),
-        weight_decay=args.weight_decay, warmup_steps=pick("warmup_steps"), ema_decay=pick("ema_decay"),
-        checkpoint_every=pick("checkpoint_every"), log_every=args.log_every, seed=args.seed,
+        batch_size=args.batch_size, rays_per_step=args.rays_per_step, lr=args.lr,
+        weight_decay=args.weight_decay, warmup_steps=args.warmup_steps, ema_decay=args.ema_decay,
+        checkpoint_every=args.checkpoint_every, log_every=args.log_every, seed=args.seed,
         num_workers=args.num_workers, amp=not args.no_amp, device=args.device, threshold=args.threshold,
     )
 

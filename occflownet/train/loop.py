@@ -1,9 +1,9 @@
-"""The training loop: AdamW + warm-up, grad-norm clipping, EMA, mixed precision, atomic checkpoints, exact resume,
-DDP under torchrun, JSON-lines/TensorBoard logging, NaN guard, optional time limit.
+"""The training loop: set-up, the optimisation step (AdamW + warm-up, grad-norm clipping, EMA, mixed precision),
+logging, the stop conditions (NaN guard, max steps, optional time limit), DDP under torchrun.
 
-Checkpoint layout (``<out>/checkpoints/last.pt``, plus ``step_<N>.pt`` copies are not kept): an occflownet model
-checkpoint whose weights are the **EMA** weights (what ``eval`` and ``export`` use by default) and whose ``extra``
-holds the training state: raw weights, optimizer, scheduler, EMA counters, step, RNG, the TrainConfig.
+The state the loop carries (model, EMA, optimiser, schedule, step) is a :class:`~occflownet.train.state.TrainingState`;
+``<out>/checkpoints/last.pt`` is its ``save`` (the layout is in ``occflownet/train/state.py``) and ``--resume`` its
+``load``. Data order and ray sampling are pure functions of (seed, step), so a resumed run is exact.
 """
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 import torch
@@ -20,21 +21,36 @@ from torch.utils.data import DataLoader
 
 from occflownet.data.index import load_index
 from occflownet.model import get_preset
-from occflownet.model.checkpoint import read_checkpoint, save_checkpoint
-from occflownet.model.occupancy_model import create_model
+from occflownet.model.presets import ModelConfig
 from occflownet.train import distributed as ddp
-from occflownet.train.recipe import TrainConfig
 from occflownet.train.dataset import TrainingSamples, collate
-from occflownet.train.ema import EMA
+from occflownet.train.recipe import TrainConfig
 from occflownet.train.run_log import RunLogger
 from occflownet.train.sampler import StepBatchSampler
-from occflownet.train.schedule import warmup_schedule
+from occflownet.train.state import TrainingError, TrainingState
 from occflownet.train.step import LossComputer
 
 
-class TrainingError(RuntimeError):
-    """Training cannot start or must stop; the message says why and what to do."""
+def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path:
+    """Run training, or with ``resume`` continue it from ``<out>/checkpoints/last.pt`` (from scratch when there is
+    none yet); returns the path of the last checkpoint. Under torchrun every rank calls it; rank 0 logs and saves."""
+    device, info = _init_device(cfg)
+    ckpt_path = last_checkpoint(cfg.out)
+    index, positions, flow_records = _training_data(cfg)
+    state = _initial_state(cfg, _model_config(cfg, index, positions), device, ckpt_path, resume, info)
+    if state.step >= cfg.max_steps:
+        return ckpt_path
+    losses = LossComputer(cfg, state.model_cfg, _class_weights(cfg, index, device))
+    loader = _data_loader(cfg, index, positions, flow_records, state.step, info)
+    _write_train_config(cfg, info)
+    monitor = _Monitor(cfg, state.step, info, progress)
+    _run_steps(state, _distributed(state.model, cfg, info, device), losses, loader, monitor, ckpt_path, device, info)
+    monitor.close()
+    _finish(state.model, info, Path(cfg.out))
+    return ckpt_path
 
+
+# --- set-up -----------------------------------------------------------------------------------------------------------
 
 def resolve_device(name: str) -> torch.device:
     if name == "auto":
@@ -44,6 +60,24 @@ def resolve_device(name: str) -> torch.device:
 
 def last_checkpoint(out) -> Path:
     return Path(out) / "checkpoints" / "last.pt"
+
+
+def _init_device(cfg: TrainConfig) -> tuple[torch.device, ddp.DistInfo]:
+    """The training device and this process's place in the torchrun group (rank 0 of 1 without torchrun)."""
+    device = resolve_device(cfg.device)
+    info = ddp.init_distributed(device)
+    if device.type == "cuda":
+        device = torch.device("cuda", info.local_rank)
+        torch.cuda.set_device(device)
+    return device, info
+
+
+def _training_data(cfg: TrainConfig):
+    """→ (SampleIndex, int64 [S] positions of the split's samples, flow records or None), checked for ``cfg``."""
+    index = load_index(cfg.dataroot, cfg.version)
+    positions = index.split_positions(cfg.split)
+    _check_data(cfg, index, positions)
+    return index, positions, _load_flow(cfg)
 
 
 def _check_data(cfg: TrainConfig, index, positions) -> None:
@@ -61,17 +95,6 @@ def _check_data(cfg: TrainConfig, index, positions) -> None:
         raise TrainingError(f"{cfg.dataroot}: the index has no class counts; run `occflownet prepare` again")
 
 
-def _model_config(cfg: TrainConfig, index, positions):
-    """The preset's ModelConfig with τ for this supervision and the training rig as default calibration."""
-    model_cfg = get_preset(cfg.preset)
-    sample = index[int(positions[0])]
-    calib = {"cameras": {c.name: {"intrinsic": c.intrinsic.tolist(), "cam2ego": c.sensor2ego.tolist()}
-                         for c in sample.cameras},
-             "image_size": [int(sample.cameras[0].width), int(sample.cameras[0].height)]}
-    head_init = cfg.head_init or model_cfg.head_init
-    return replace(model_cfg, threshold=cfg.resolved_threshold(), default_calibration=calib, head_init=head_init)
-
-
 def _load_flow(cfg: TrainConfig):
     if not cfg.flow:
         return None
@@ -86,6 +109,147 @@ def _load_flow(cfg: TrainConfig):
         raise TrainingError(f"{path} covers frames up to ±{covered}, training asks for --horizon {cfg.horizon}: "
                             f"run `occflownet prepare --dataroot {cfg.dataroot} --flow-horizon {cfg.horizon}`")
     return load_flow_records(path)
+
+
+def _model_config(cfg: TrainConfig, index, positions):
+    """The preset's ModelConfig with τ for this supervision and the training rig as default calibration."""
+    model_cfg = get_preset(cfg.preset)
+    sample = index[int(positions[0])]
+    calib = {"cameras": {c.name: {"intrinsic": c.intrinsic.tolist(), "cam2ego": c.sensor2ego.tolist()}
+                         for c in sample.cameras},
+             "image_size": [int(sample.cameras[0].width), int(sample.cameras[0].height)]}
+    head_init = cfg.head_init or model_cfg.head_init
+    return replace(model_cfg, threshold=cfg.resolved_threshold(), default_calibration=calib, head_init=head_init)
+
+
+def _initial_state(cfg: TrainConfig, model_cfg: ModelConfig, device, ckpt_path: Path, resume: bool,
+                   info) -> TrainingState:
+    """With ``resume`` and a checkpoint at ``ckpt_path``: the state saved there, continued under ``cfg``;
+    otherwise a fresh state of ``model_cfg``."""
+    if resume and ckpt_path.is_file():
+        state = TrainingState.load(ckpt_path, device, cfg)
+        if info.is_main:
+            print(f"resuming from {ckpt_path} at step {state.step}", file=sys.stderr)
+        return state
+    if resume and info.is_main:
+        print(f"--resume: no checkpoint at {ckpt_path}; starting from scratch", file=sys.stderr)
+    return TrainingState.create(cfg, model_cfg, device)
+
+
+def _class_weights(cfg: TrainConfig, index, device) -> torch.Tensor | None:
+    """float32 [17] ray weights ω(label) from `prepare`'s class counts, or None (uniform)."""
+    if not cfg.loss_weighting or index.class_stats is None:
+        return None
+    return torch.as_tensor(np.asarray(index.class_stats.weights), dtype=torch.float32, device=device)
+
+
+def _distributed(model: torch.nn.Module, cfg: TrainConfig, info, device) -> torch.nn.Module:
+    """``model`` wrapped in DDP under torchrun, else ``model`` itself (what the forward pass calls)."""
+    if not info.enabled:
+        return model
+    return DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
+                                   find_unused_parameters=not cfg.depth_loss)
+
+
+def _data_loader(cfg: TrainConfig, index, positions, flow_records, start_step: int, info) -> DataLoader:
+    """Batches (:func:`collate`) of this rank's samples for steps ``start_step .. max_steps-1``."""
+    dataset = TrainingSamples(cfg.dataroot, index, positions, cfg, flow_records)
+    sampler = StepBatchSampler(len(positions), cfg.batch_size, cfg.seed, start_step, cfg.max_steps,
+                               info.rank, info.world_size)
+    return DataLoader(dataset, batch_sampler=sampler, collate_fn=collate, num_workers=cfg.num_workers,
+                      prefetch_factor=2 if cfg.num_workers > 0 else None)
+
+
+def _write_train_config(cfg: TrainConfig, info) -> None:
+    """``<out>/train_config.json``: the resolved TrainConfig of this run (rank 0)."""
+    if info.is_main:
+        out = Path(cfg.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "train_config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+
+
+# --- the steps --------------------------------------------------------------------------------------------------------
+
+def _run_steps(state: TrainingState, net, losses: LossComputer, loader: Iterable[dict], monitor: "_Monitor",
+               ckpt_path: Path, device, info) -> None:
+    """Optimisation steps until the loader ends (at ``max_steps``) or the time limit; rank 0 saves ``state`` to
+    ``ckpt_path`` every ``checkpoint_every`` steps, at the last step and at the time limit."""
+    cfg = state.cfg
+    amp_dtype = torch.bfloat16 if device.type == "cuda" and cfg.amp else None
+    t_start = time.monotonic()
+    state.model.train()
+    for batch in loader:
+        generator = torch.Generator(device=device).manual_seed(cfg.seed * 1_000_003 + state.step * 101 + info.rank)
+        terms, grad_norm = train_step(state, net, losses, batch, device, generator, amp_dtype)
+        monitor.after_step(state.step, terms, grad_norm, state.scheduler.get_last_lr()[0], _ray_count(batch))
+        out_of_time = _out_of_time(cfg, t_start, info, device)
+        if info.is_main and (_checkpoint_due(cfg, state.step) or out_of_time):
+            state.save(ckpt_path)
+        if out_of_time:
+            if info.is_main:
+                print(f"time limit of {cfg.time_limit_s:.0f} s reached at step {state.step}", file=sys.stderr)
+            return
+
+
+def train_step(state: TrainingState, net, losses: LossComputer, batch: dict, device, generator: torch.Generator,
+               amp_dtype: torch.dtype | None = None) -> tuple[dict, torch.Tensor]:
+    """One optimisation step; ``state.step`` += 1.
+
+    ``batch``: from :func:`collate` (images uint8 [B, 6, H, W, 3], intrinsics [B, 6, 3, 3], cam2ego [B, 6, 4, 4]
+    camera → current ego, rays and labels in the current ego frame). ``net``: ``state.model`` or its DDP wrapper.
+    ``generator``: the render jitter of this step. Forward under autocast(``amp_dtype``) when given, losses (a
+    non-finite loss raises TrainingError), backward, grad-norm clip, AdamW and schedule step, EMA update.
+    → (loss terms {name: scalar tensor, "loss": total}, grad norm before clipping)."""
+    with torch.autocast(device.type, dtype=amp_dtype, enabled=amp_dtype is not None):
+        outputs = net(batch["images"].to(device), batch["intrinsics"].to(device), batch["cam2ego"].to(device))
+    terms = losses(outputs, batch, device, generator)
+    _stop_if_not_finite(terms, state.step, last_checkpoint(state.cfg.out))
+    state.optimizer.zero_grad(set_to_none=True)
+    terms["loss"].backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(state.model.parameters(), state.cfg.grad_clip)
+    state.optimizer.step()
+    state.scheduler.step()
+    state.ema.update(state.model)
+    state.step += 1
+    return terms, grad_norm
+
+
+def _ray_count(batch: dict) -> int:
+    return int(batch["ray_depths"].numel()) if "ray_depths" in batch else 0
+
+
+# --- stop conditions and the end --------------------------------------------------------------------------------------
+
+def _stop_if_not_finite(terms: dict, step: int, ckpt_path: Path) -> None:
+    """TrainingError naming the step, the loss terms and the last good checkpoint when the total loss is not finite."""
+    loss = terms["loss"]
+    if torch.isfinite(loss):
+        return
+    good = f"last good checkpoint: {ckpt_path}" if ckpt_path.is_file() else "no checkpoint was written yet"
+    values = {k: float(v.detach()) for k, v in terms.items()}
+    raise TrainingError(f"loss is {loss.item()} at step {step} ({values}); stopping; {good}")
+
+
+def _out_of_time(cfg: TrainConfig, t_start: float, info, device) -> bool:
+    """Whether ``cfg.time_limit_s`` (0 = none) has passed since ``t_start``; under DDP every rank gets the same answer
+    (any rank out of time stops all at the same step)."""
+    out_of_time = cfg.time_limit_s > 0 and time.monotonic() - t_start > cfg.time_limit_s
+    if info.enabled:
+        flag = torch.tensor([float(out_of_time)], device=device)
+        out_of_time = bool(ddp.all_reduce_mean(flag, info).item() > 0)
+    return out_of_time
+
+
+def _checkpoint_due(cfg: TrainConfig, step: int) -> bool:
+    return step % cfg.checkpoint_every == 0 or step == cfg.max_steps
+
+
+def _finish(model: torch.nn.Module, info, out: Path) -> None:
+    """Under DDP: check that the replicas hold the same weights, then leave the process group."""
+    if info.enabled:
+        _check_ranks_in_sync(model, info, out)
+    ddp.barrier(info)
+    ddp.shutdown(info)
 
 
 def _check_ranks_in_sync(model, info, out: Path) -> None:
@@ -108,132 +272,39 @@ def _check_ranks_in_sync(model, info, out: Path) -> None:
             raise TrainingError(f"DDP replicas diverged: weight hashes per rank {hashes}")
 
 
-def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path:
-    """Run (or resume) training; returns the path of the last checkpoint."""
-    device = resolve_device(cfg.device)
-    info = ddp.init_distributed(device)
-    if device.type == "cuda":
-        device = torch.device("cuda", info.local_rank)
-        torch.cuda.set_device(device)
-    out = Path(cfg.out)
-    ckpt_path = last_checkpoint(out)
+# --- logging ----------------------------------------------------------------------------------------------------------
 
-    index = load_index(cfg.dataroot, cfg.version)
-    positions = index.split_positions(cfg.split)
-    _check_data(cfg, index, positions)
-    flow_records = _load_flow(cfg)
+class _Monitor:
+    """Rank 0's record of the run: ``log.jsonl`` (and TensorBoard) every ``log_every`` steps and at the last step,
+    the tqdm bar on stderr when ``progress``."""
 
-    model_cfg = _model_config(cfg, index, positions)
-    model = create_model(model_cfg, seed=cfg.seed).to(device)
-    decay, no_decay = [], []
-    for name, p in model.named_parameters():
-        (no_decay if p.ndim <= 1 else decay).append(p)
-    optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": cfg.weight_decay},
-                                   {"params": no_decay, "weight_decay": 0.0}], lr=cfg.lr)
-    scheduler = warmup_schedule(optimizer, cfg.warmup_steps)
-    ema = EMA(model, cfg.ema_decay)
-    start_step = 0
+    def __init__(self, cfg: TrainConfig, start_step: int, info, progress: bool):
+        self.cfg, self.world_size = cfg, info.world_size
+        self.logger = RunLogger(Path(cfg.out), enabled=info.is_main)
+        self.bar = None
+        if progress and info.is_main:
+            from tqdm import tqdm
 
-    if resume and ckpt_path.is_file():
-        payload = read_checkpoint(ckpt_path)
-        state = payload["extra"]["train"]
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        ema.shadow.load_state_dict(payload["state_dict"])
-        ema.updates = int(state["ema_updates"])
-        torch.set_rng_state(state["torch_rng"])
-        start_step = int(state["step"])
-        if info.is_main:
-            print(f"resuming from {ckpt_path} at step {start_step}", file=sys.stderr)
-    elif resume and info.is_main:
-        print(f"--resume: no checkpoint at {ckpt_path}; starting from scratch", file=sys.stderr)
+            self.bar = tqdm(total=cfg.max_steps, initial=start_step, desc="train", unit="step", file=sys.stderr,
+                            dynamic_ncols=True)
+        self.t_log, self.rays_since_log = time.monotonic(), 0
 
-    if start_step >= cfg.max_steps:
-        return ckpt_path
-
-    weights = None
-    if cfg.loss_weighting and index.class_stats is not None:
-        weights = torch.as_tensor(np.asarray(index.class_stats.weights), dtype=torch.float32, device=device)
-    losses = LossComputer(cfg, model_cfg, weights)
-
-    net = model
-    if info.enabled:
-        net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None,
-                                      find_unused_parameters=not cfg.depth_loss)
-    dataset = TrainingSamples(cfg.dataroot, index, positions, cfg, flow_records)
-    sampler = StepBatchSampler(len(positions), cfg.batch_size, cfg.seed, start_step, cfg.max_steps,
-                               info.rank, info.world_size)
-    loader = DataLoader(dataset, batch_sampler=sampler, collate_fn=collate, num_workers=cfg.num_workers,
-                        prefetch_factor=2 if cfg.num_workers > 0 else None)
-    amp_dtype = torch.bfloat16 if device.type == "cuda" and cfg.amp else None
-    logger = RunLogger(out, enabled=info.is_main)
-    if info.is_main:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "train_config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
-
-    def save(step: int) -> None:
-        if not info.is_main:
-            return
-        extra = {"train": {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                           "scheduler": scheduler.state_dict(), "ema_updates": ema.updates, "step": step,
-                           "torch_rng": torch.get_rng_state(), "config": cfg.to_dict()}}
-        save_checkpoint(ckpt_path, ema.shadow, model_cfg, extra)
-
-    bar = None
-    if progress and info.is_main:
-        from tqdm import tqdm
-
-        bar = tqdm(total=cfg.max_steps, initial=start_step, desc="train", unit="step", file=sys.stderr,
-                   dynamic_ncols=True)
-    t_start = time.monotonic()
-    t_log, rays_since_log = time.monotonic(), 0
-    step = start_step
-    model.train()
-    for batch in loader:
-        generator = torch.Generator(device=device).manual_seed(cfg.seed * 1_000_003 + step * 101 + info.rank)
-        with torch.autocast(device.type, dtype=amp_dtype, enabled=amp_dtype is not None):
-            outputs = net(batch["images"].to(device), batch["intrinsics"].to(device), batch["cam2ego"].to(device))
-        terms = losses(outputs, batch, device, generator)
-        loss = terms["loss"]
-        if not torch.isfinite(loss):
-            good = f"last good checkpoint: {ckpt_path}" if ckpt_path.is_file() else "no checkpoint was written yet"
-            raise TrainingError(f"loss is {loss.item()} at step {step} ({ {k: float(v.detach()) for k, v in terms.items()} }); "
-                                f"stopping; {good}")
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-        optimizer.step()
-        scheduler.step()
-        ema.update(model)
-        step += 1
-        rays_since_log += int(batch["ray_depths"].numel()) if "ray_depths" in batch else 0
-        if info.is_main and (step % cfg.log_every == 0 or step == cfg.max_steps):
+    def after_step(self, step: int, terms: dict, grad_norm: torch.Tensor, lr: float, rays: int) -> None:
+        """Record step ``step`` (counted after the update): loss terms, lr, grad norm, rays/s over all ranks."""
+        self.rays_since_log += rays
+        if self.logger.enabled and (step % self.cfg.log_every == 0 or step == self.cfg.max_steps):
             now = time.monotonic()
             record = {k: float(v.detach()) for k, v in terms.items()}
-            record.update(lr=scheduler.get_last_lr()[0], grad_norm=float(grad_norm),
-                          rays_per_s=rays_since_log * info.world_size / max(now - t_log, 1e-9))
-            logger.log(step, record)
-            t_log, rays_since_log = now, 0
-            if bar is not None:
-                bar.set_postfix(loss=f"{record['loss']:.3f}", rays_s=f"{record['rays_per_s']:.0f}")
-        if bar is not None:
-            bar.update(1)
-        out_of_time = cfg.time_limit_s > 0 and time.monotonic() - t_start > cfg.time_limit_s
-        if info.enabled:  # every rank stops at the same step
-            flag = torch.tensor([float(out_of_time)], device=device)
-            out_of_time = bool(ddp.all_reduce_mean(flag, info).item() > 0)
-        if step % cfg.checkpoint_every == 0 or step == cfg.max_steps or out_of_time:
-            save(step)
-        if out_of_time:
-            if info.is_main:
-                print(f"time limit of {cfg.time_limit_s:.0f} s reached at step {step}", file=sys.stderr)
-            break
-    if bar is not None:
-        bar.close()
-    logger.close()
-    if info.enabled:
-        _check_ranks_in_sync(model, info, out)
-    ddp.barrier(info)
-    ddp.shutdown(info)
-    return ckpt_path
+            record.update(lr=lr, grad_norm=float(grad_norm),
+                          rays_per_s=self.rays_since_log * self.world_size / max(now - self.t_log, 1e-9))
+            self.logger.log(step, record)
+            self.t_log, self.rays_since_log = now, 0
+            if self.bar is not None:
+                self.bar.set_postfix(loss=f"{record['loss']:.3f}", rays_s=f"{record['rays_per_s']:.0f}")
+        if self.bar is not None:
+            self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+        self.logger.close()

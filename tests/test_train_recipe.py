@@ -1,0 +1,44 @@
+"""The per-preset recipe lives in the library: TrainConfig(preset=p) is the run `occflownet train --preset p` is."""
+import json
+
+import pytest
+
+from occflownet.cli import build_parser
+from occflownet.commands.train import config_from_args
+from occflownet.model.presets import PRESETS
+from occflownet.train.recipe import PRESET_RECIPES, TrainConfig
+
+
+def test_every_model_preset_has_a_recipe():
+    assert set(PRESET_RECIPES) == set(PRESETS)
+
+
+@pytest.mark.parametrize("preset", sorted(PRESET_RECIPES))
+def test_config_from_python_equals_the_command_line_config(preset, prepared_synth_root, tmp_path):
+    root, version = prepared_synth_root
+    args = build_parser().parse_args(["train", "--preset", preset, "--dataroot", str(root), "--out", str(tmp_path)])
+    from_cli = config_from_args(args)
+    from_python = TrainConfig(preset=preset, dataroot=str(root), out=str(tmp_path), version=version)
+    assert from_cli == from_python
+    for name, value in PRESET_RECIPES[preset].items():
+        assert getattr(from_python, name) == value, name
+
+
+def test_recipe_values_are_resolved_and_overridable():
+    cfg = TrainConfig(preset="tiny", lr=5e-4)
+    assert (cfg.lr, cfg.rays_per_step, cfg.warmup_steps, cfg.ema_decay, cfg.checkpoint_every) == (5e-4, 4096, 50, 0.99,
+                                                                                                   50)
+    written = json.loads(json.dumps(cfg.to_dict()))                 # what train_config.json holds: no None left
+    assert written["rays_per_step"] == 4096 and None not in [written[k] for k in PRESET_RECIPES["tiny"]]
+    assert TrainConfig.from_dict(written) == cfg
+    assert TrainConfig(preset="base").rays_per_step == 32768
+
+
+def test_old_config_dicts_still_load():
+    old = TrainConfig(preset="tiny").to_dict() | {"extra": {}}     # written before TrainConfig.extra was removed
+    assert TrainConfig.from_dict(old) == TrainConfig(preset="tiny")
+
+
+def test_unknown_preset_is_an_error():
+    with pytest.raises(ValueError, match="unknown preset 'huge'"):
+        TrainConfig(preset="huge")
