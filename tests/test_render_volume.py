@@ -292,3 +292,28 @@ def test_depth_loss_fits_a_free_volume_to_an_analytic_scan():
         opt.step()
     end = mean_error()
     assert start > 2.0 and end < 0.5, (start, end)
+
+
+def test_numba_kernels_leave_torch_thread_count_alone():
+    """numba's OpenMP layer raises torch's intra-op threads to its own count when it starts; the renderer's thread
+    context restores it, so every training step of a process runs torch with the same threads (exact resume)."""
+    import os
+    import subprocess
+    import sys
+
+    code = """
+import numba, numpy as np, torch
+from occflownet.render.numba_render import numba_threads
+before = torch.get_num_threads()
+@numba.njit(parallel=True)
+def total(a):
+    s = 0.0
+    for i in numba.prange(a.shape[0]):
+        s += a[i]
+    return s
+with numba_threads(0):
+    total(np.ones(1000))
+assert torch.get_num_threads() == before == 1, (before, torch.get_num_threads(), numba.threading_layer())
+"""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "2"}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env)
