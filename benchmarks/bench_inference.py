@@ -32,7 +32,6 @@ SPINNING = False  # onnxruntime worker threads busy-wait (--ort-spinning) or sle
 def load_inputs():
     from occflownet.contract import calibration_arrays, load_calibration
     from occflownet.predict import load_image_folder
-    from occflownet.contract import calibration_arrays
     from occflownet.rig import default_rig
 
     if (FRAME / "calib.json").is_file():

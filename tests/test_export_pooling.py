@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from occflownet.export.onnx_export import ExportError, deterministic_scatter_add, trace_to_onnx
-from occflownet.model.lift import LiftSplat, fine_grid
-from test_model_lift import _rig, assert_rotated
+from occflownet.model.lift import LiftSplat
+from test_model_lift import _rig, assert_rotated, fine_grid
 
 H, W = 6, 10
 

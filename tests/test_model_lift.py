@@ -4,9 +4,18 @@ import torch
 
 from occflownet.occ3d import GRID
 from occflownet.geometry import rotation_z
-from occflownet.model.lift import LiftSplat, fine_grid, frustum_points, invert_3x3, scatter_pool, voxel_rows
+from occflownet.model.decoder import unblock
+from occflownet.model.lift import LiftSplat, frustum_points, invert_3x3, scatter_pool, voxel_rows
 from occflownet.contract import calibration_arrays
 from occflownet.rig import default_rig
+
+
+def fine_grid(fine_points: tuple[torch.Tensor, torch.Tensor], batch: int, stride: int) -> torch.Tensor:
+    """Dense full-resolution pooled features [B, X, Y, Z, C] from LiftSplat's (rows, features), to inspect them."""
+    rows, feats = fine_points
+    cx, cy, cz = (n // stride for n in GRID.shape)
+    dense = scatter_pool(feats, rows, batch * cx * cy * cz * stride ** 3)
+    return unblock(dense.reshape(batch, cx, cy, cz, stride ** 3, -1), stride)
 
 
 def _rig(h=6, w=10):

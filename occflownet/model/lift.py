@@ -15,7 +15,6 @@ import torch
 from torch import nn
 
 from occflownet.occ3d import GRID
-from occflownet.model.decoder import unblock
 
 
 class DepthContextHead(nn.Module):
@@ -93,14 +92,6 @@ def voxel_rows(points: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.T
 def scatter_pool(features: torch.Tensor, rows: torch.Tensor, num_rows) -> torch.Tensor:
     """Sum ``features`` [N, C] into a zero-initialised [num_rows, C] by ``rows`` int64 [N] (repeats add up)."""
     return torch.index_add(features.new_zeros((num_rows, features.shape[1])), 0, rows, features)
-
-
-def fine_grid(fine_points: tuple[torch.Tensor, torch.Tensor], batch: int, stride: int) -> torch.Tensor:
-    """Dense full-resolution pooled features [B, X, Y, Z, C] from LiftSplat's (rows, features) (for inspection)."""
-    rows, feats = fine_points
-    cx, cy, cz = (n // stride for n in GRID.shape)
-    dense = scatter_pool(feats, rows, batch * cx * cy * cz * stride ** 3)
-    return unblock(dense.reshape(batch, cx, cy, cz, stride ** 3, -1), stride)
 
 
 class LiftSplat(nn.Module):
