@@ -214,6 +214,13 @@ def voxel_losses(density: torch.Tensor, logits: torch.Tensor, semantics_gt: torc
             "voxel_semantics": cfg.voxel_semantic_weight * semantic_term}
 
 
+def _require(what: str, **inputs) -> None:
+    """ValueError naming the inputs ``what`` needs that are None."""
+    missing = [name for name, value in inputs.items() if value is None]
+    if missing:
+        raise ValueError(f"{what} needs {', '.join(missing)}")
+
+
 def total_loss(cfg: LossConfig, *, rendered=None, depth_gt=None, labels_gt=None, class_weights=None,
                depth_prob=None, feature_intrinsics=None, cam2ego=None, points_ego=None, depth_bin_centers=None,
                density=None, logits=None, semantics_gt=None, voxel_mask=None,
@@ -229,22 +236,14 @@ def total_loss(cfg: LossConfig, *, rendered=None, depth_gt=None, labels_gt=None,
     """
     terms: dict[str, torch.Tensor] = {}
     if cfg.mode in ("2d", "2d+3d"):
-        missing = [n for n, v in (("rendered", rendered), ("depth_gt", depth_gt), ("labels_gt", labels_gt))
-                   if v is None]
-        if missing:
-            raise ValueError(f"total_loss mode {cfg.mode!r} needs {', '.join(missing)}")
+        _require(f"total_loss mode {cfg.mode!r}", rendered=rendered, depth_gt=depth_gt, labels_gt=labels_gt)
         terms.update(ray_losses(rendered, depth_gt, labels_gt, class_weights, cfg))
     if cfg.mode in ("3d", "2d+3d"):
-        missing = [n for n, v in (("density", density), ("logits", logits), ("semantics_gt", semantics_gt))
-                   if v is None]
-        if missing:
-            raise ValueError(f"total_loss mode {cfg.mode!r} needs {', '.join(missing)}")
+        _require(f"total_loss mode {cfg.mode!r}", density=density, logits=logits, semantics_gt=semantics_gt)
         terms.update(voxel_losses(density, logits, semantics_gt, voxel_mask, cfg))
     if cfg.lidar_depth_weight > 0 and depth_prob is not None:
-        missing = [n for n, v in (("feature_intrinsics", feature_intrinsics), ("cam2ego", cam2ego),
-                                  ("points_ego", points_ego), ("depth_bin_centers", depth_bin_centers)) if v is None]
-        if missing:
-            raise ValueError(f"lidar depth loss needs {', '.join(missing)} with depth_prob")
+        _require("lidar depth loss (with depth_prob)", feature_intrinsics=feature_intrinsics, cam2ego=cam2ego,
+                 points_ego=points_ego, depth_bin_centers=depth_bin_centers)
         terms["lidar_depth"] = cfg.lidar_depth_weight * lidar_depth_loss(
             depth_prob, feature_intrinsics, cam2ego, points_ego, depth_bin_centers)
     if free_opacity is not None and cfg.free_space_weight > 0:
