@@ -26,7 +26,19 @@ def test_synth_command_writes_dataset_and_previews(tmp_path, capsys):
 def test_synth_command_rejects_bad_options(tmp_path, capsys):
     base = ["synth", "--out", str(tmp_path / "x"), "--no-progress"]
     assert main(base + ["--margin", "10"]) == 2
-    assert "--margin" in capsys.readouterr().err
+    assert "margin must be at least 45 m" in capsys.readouterr().err
     assert main(base + ["--frames", "0"]) == 2
     assert "at least one" in capsys.readouterr().err
     assert main(base + ["--lanes", "3", "1"]) == 2
+
+
+def test_world_config_checks_its_own_ranges():
+    """The ranges live in the library (WorldConfig), so Python callers get the same checks as the command line."""
+    import pytest
+
+    from occflownet.synth.layout import WorldConfig
+
+    for bad in ({"margin": 10.0}, {"lanes": (3, 1)}, {"ego_speed": (5.0, 30.0)}, {"traffic": 0.0},
+                {"cross_street_probability": 1.5}):
+        with pytest.raises(ValueError):
+            WorldConfig(**bad)

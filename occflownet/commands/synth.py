@@ -33,14 +33,6 @@ def run(args) -> int:
     from occflownet.synth.layout import WorldConfig
 
     try:
-        if args.margin < 45.0:
-            raise ValueError("--margin must be at least 45 m (the grid reaches 40 m from the ego)")
-        if not 1 <= args.lanes[0] <= args.lanes[1] <= 4:
-            raise ValueError("--lanes MIN MAX must satisfy 1 <= MIN <= MAX <= 4")
-        if not 0.0 <= args.ego_speed[0] <= args.ego_speed[1] <= 20.0:
-            raise ValueError("--ego-speed MIN MAX must satisfy 0 <= MIN <= MAX <= 20")
-        if args.traffic <= 0 or args.pedestrians < 0 or not 0 <= args.cross_street <= 1:
-            raise ValueError("--traffic must be > 0, --pedestrians >= 0, --cross-street in [0, 1]")
         config = WorldConfig(margin=args.margin, ego_speed=tuple(args.ego_speed), lanes=tuple(args.lanes),
                              traffic=args.traffic, pedestrians=args.pedestrians,
                              cross_street_probability=args.cross_street)

@@ -30,6 +30,16 @@ class WorldConfig:
     cross_street_probability: float = 0.7
     raster_res: float = 0.1  # ground raster cell [m]
 
+    def __post_init__(self):
+        if self.margin < 45.0:
+            raise ValueError("margin must be at least 45 m (the grid reaches 40 m from the ego)")
+        if not 1 <= self.lanes[0] <= self.lanes[1] <= 4:
+            raise ValueError("lanes (MIN, MAX) must satisfy 1 <= MIN <= MAX <= 4")
+        if not 0.0 <= self.ego_speed[0] <= self.ego_speed[1] <= 20.0:
+            raise ValueError("ego_speed (MIN, MAX) must satisfy 0 <= MIN <= MAX <= 20 m/s")
+        if self.traffic <= 0 or self.pedestrians < 0 or not 0 <= self.cross_street_probability <= 1:
+            raise ValueError("traffic must be > 0, pedestrians >= 0, cross_street_probability in [0, 1]")
+
 
 class _Builder:
     """Accumulates static boxes and agents in the scene frame while the layout is drawn."""
