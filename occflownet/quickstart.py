@@ -54,8 +54,8 @@ class QuickstartPaths:
                    picture=out / "side_by_side.png", example=out / "example")
 
 
-def _announce(log: Callable[[str], None], n: int, argv: list[str]) -> None:
-    log(f"\n[{n}/5] occflownet {shlex.join(argv)}")
+def _announce(log: Callable[[str], None], n: int, argv: list[str], note: str = "") -> None:
+    log(f"\n[{n}/5] occflownet {shlex.join(argv)}{note}")
 
 
 def run_quickstart(cfg: QuickstartConfig = QuickstartConfig(),
@@ -69,7 +69,7 @@ def run_quickstart(cfg: QuickstartConfig = QuickstartConfig(),
     result = {}
     for n, (name, stage) in enumerate(stages, 1):
         try:
-            result[name] = stage(cfg, paths, lambda argv: _announce(log, n, argv))
+            result[name] = stage(cfg, paths, lambda argv, note="": _announce(log, n, argv, note))
         except Exception:
             log(f"quickstart: stage `{name}` failed; fix the error and re-run (finished stages are reused: the "
                 "world is kept and training resumes)")
@@ -85,7 +85,7 @@ def _synth(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
     argv = ["synth", "--out", str(paths.world), "--scenes", str(cfg.scenes), "--frames", str(cfg.frames),
             "--seed", str(cfg.seed), "--preview"]
     if (paths.world / "v1.0-trainval" / "sample.json").is_file():
-        announce(argv[:3] + ["(exists, reused)"])
+        announce(argv, "   (the world exists: reused)")
         return
     announce(argv)
     generate(paths.world, scenes=cfg.scenes, frames=cfg.frames, seed=cfg.seed, preview=True)
