@@ -38,7 +38,9 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path
     ckpt_path = last_checkpoint(cfg.out)
     index, positions, flow_records = _training_data(cfg)
     state = _initial_state(cfg, _model_config(cfg, index, positions), device, ckpt_path, resume, info)
-    if state.step >= cfg.max_steps:
+    if state.step >= cfg.max_steps:                          # nothing left to do: leave the process group
+        ddp.barrier(info)
+        ddp.shutdown(info)
         return ckpt_path
     losses = LossComputer(cfg, state.model_cfg, _class_weights(cfg, index, device))
     loader = _data_loader(cfg, index, positions, flow_records, state.step, info)
