@@ -3,8 +3,8 @@
 Inputs: a folder with one image per camera (``<CAMERA>.jpg``/``.jpeg``/``.png``) → uint8 [6, H, W, 3] RGB in
 ``CAMERAS`` order; calibration and sessions are the contract's (:mod:`occflownet.contract`). Outputs: occupancy
 uint8 [200, 200, 16] ([x, y, z] of the ego frame, 17 = free) and density float32 [200, 200, 16], written as one
-.npz, and per-class counts. This module imports numpy (and OpenCV to decode images) at import time; torch only
-inside :func:`model_from_source` and :func:`predict_torch`, so the onnxruntime path runs without torch.
+.npz, and per-class counts. This module imports numpy at import time, OpenCV when it decodes an image and torch
+only inside :func:`model_from_source` and :func:`predict_torch`, so the onnxruntime path runs without torch.
 """
 from __future__ import annotations
 
