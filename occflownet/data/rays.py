@@ -7,7 +7,7 @@ the *current* ego frame becomes one ray:
 - origin    = the camera centre;
 - direction = unit vector through the centre of the pixel the point falls in, (floor(u) + 0.5, floor(v) + 0.5);
 - depth     = Euclidean distance from the camera centre to the LiDAR point (not the camera z-depth);
-- label     = Occ3D class of the point (``config.map_lidarseg`` of its raw lidarseg index).
+- label     = Occ3D class of the point (``occ3d.map_lidarseg`` of its raw lidarseg index).
 
 Because the direction goes through the pixel centre while the depth is the distance to the point itself,
 ``origin + depth * direction`` misses the point by at most ``depth * θ``, θ being the angle between the ray to the
@@ -63,7 +63,7 @@ class RayBatch:
     depths: np.ndarray        # float32 [R]     distance from the origin to the LiDAR point along the ray (m)
     labels: np.ndarray        # uint8   [R]     Occ3D class 0..16
     time_offsets: np.ndarray  # int8    [R]     t: keyframe offset of the frame the ray comes from (0 = current)
-    cameras: np.ndarray       # int8    [R]     camera index in config.CAMERAS order
+    cameras: np.ndarray       # int8    [R]     camera index in occ3d.CAMERAS order
     pixels: np.ndarray        # float32 [R, 2]  (u, v) pixel centre in that camera's stored image, pixels
 
     def __len__(self) -> int:

@@ -78,7 +78,7 @@ class Boxes:
 
     instance_tokens: np.ndarray   # str [B]
     category_names: np.ndarray    # str [B], e.g. vehicle.car
-    labels: np.ndarray            # uint8 [B]: Occ3D class via config.category_to_occ3d
+    labels: np.ndarray            # uint8 [B]: Occ3D class via occ3d.category_to_occ3d
     translations: np.ndarray      # float64 [B, 3]: box centre, global
     sizes: np.ndarray             # float64 [B, 3]: (w, l, h)
     rotations: np.ndarray         # float64 [B, 4]: quaternion (w, x, y, z), box → global
@@ -109,7 +109,7 @@ class SampleRecord:
     timestamp: int                # µs (the sample's timestamp)
     index_in_scene: int           # 0-based position among the scene's keyframes (time order)
     scene_sample_tokens: tuple    # tokens of all keyframes of the scene, in time order
-    cameras: tuple                # 6 CameraRecord in config.CAMERAS order
+    cameras: tuple                # 6 CameraRecord in occ3d.CAMERAS order
     lidar: LidarRecord
     lidarseg_path: str | None     # raw lidarseg labels (uint8 per point), relative to the dataroot
     occupancy_path: str | None    # Occ3D labels.npz, relative to the dataroot

@@ -69,7 +69,7 @@ def side_by_side(prediction: np.ndarray, ground_truth: np.ndarray, image: np.nda
 def sample_side_by_side(dataroot, sample, prediction: np.ndarray, camera: int = 0) -> np.ndarray:
     """:func:`side_by_side` of a keyframe (``sample``: a SampleRecord of the index of ``dataroot``):
     ``prediction`` uint8 [200, 200, 16] against its Occ3D labels, seen from camera ``camera`` (index in
-    ``config.CAMERAS``)."""
+    ``occ3d.CAMERAS``)."""
     from occflownet.occ3d import CAMERAS
     from occflownet.data.loaders import load_occupancy, load_sample_images
 

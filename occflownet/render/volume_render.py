@@ -2,7 +2,7 @@
 
 Inputs (one call renders a batch of rays through a batch of volumes):
 - ``density`` σ: float [B, X, Y, Z] (or [X, Y, Z]) in [0, 1], the sigmoid output, in the grid ``cfg.grid``
-  (default ``config.GRID``; voxel (i,j,k) centre = lower + (ijk + 0.5) · voxel_size, ego frame);
+  (default ``occ3d.GRID``; voxel (i,j,k) centre = lower + (ijk + 0.5) · voxel_size, ego frame);
 - ``logits``: float [B, X, Y, Z, C] (or [X, Y, Z, C]) channels-last semantic logits (C = 17);
 - ``origins``, ``directions``: float [R, 3] in the same ego frame; directions unit length;
 - ``batch_index``: long [R] choosing the volume of each ray (needed when B > 1; the flow code passes a stacked
