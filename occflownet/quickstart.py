@@ -74,8 +74,9 @@ def run_quickstart(cfg: QuickstartConfig = QuickstartConfig(),
             log(f"quickstart: stage `{name}` failed; fix the error and re-run (finished stages are reused: the "
                 "world is kept and training resumes)")
             raise
-    write_example(paths.world, paths.example)
-    write_picture(paths.world, paths.predictions, paths.picture)
+    sample = first_val_sample(result["prepare"].index)
+    write_example(paths.world, sample, paths.example)
+    write_picture(paths.world, sample, paths.predictions, paths.picture)
     return {"paths": paths, "eval": result["eval"], "minutes": (time.monotonic() - t0) / 60}
 
 
@@ -91,11 +92,11 @@ def _synth(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
     generate(paths.world, scenes=cfg.scenes, frames=cfg.frames, seed=cfg.seed, preview=True)
 
 
-def _prepare(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
+def _prepare(cfg: QuickstartConfig, paths: QuickstartPaths, announce):
     from occflownet.data.prepare import prepare
 
     announce(["prepare", "--dataroot", str(paths.world)])
-    prepare(paths.world, progress=True)
+    return prepare(paths.world, progress=True)
 
 
 def _train(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> Path:
@@ -137,27 +138,25 @@ def _export(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
     print(export_model(model, model.cfg, paths.onnx).summary(), file=sys.stderr)
 
 
-def first_val_sample(world: Path):
-    """The first keyframe of the val split of ``world`` (a SampleRecord)."""
-    index = load_index(world)
+def first_val_sample(index):
+    """The first keyframe of the val split of a SampleIndex (a SampleRecord)."""
     return index[int(index.split_positions("val")[0])]
 
 
-def write_picture(world: Path, predictions: Path, path: Path) -> Path:
-    """The side-by-side picture (:mod:`occflownet.eval.picture`) of the first val keyframe's saved prediction."""
+def write_picture(world: Path, sample, predictions: Path, path: Path) -> Path:
+    """The side-by-side picture (:mod:`occflownet.eval.picture`) of keyframe ``sample`` (a SampleRecord of
+    ``world``) from its prediction saved in ``predictions``."""
     from occflownet.eval.picture import sample_side_by_side
     from occflownet.pictures import save_png
 
-    sample = first_val_sample(world)
     with np.load(predictions / f"{sample.token}.npz") as z:
         occupancy = z["occupancy"]
     return save_png(path, sample_side_by_side(world, sample, occupancy))
 
 
-def write_example(world: Path, folder: Path) -> Path:
-    """Copy the six images of the first val keyframe to ``folder/CAM_*.jpg`` with its ``calib.json`` (intrinsics
-    and cam2ego as the index holds them), the input ``occflownet predict`` takes."""
-    sample = first_val_sample(world)
+def write_example(world: Path, sample, folder: Path) -> Path:
+    """Copy the six images of keyframe ``sample`` (a SampleRecord of ``world``) to ``folder/CAM_*.jpg`` with its
+    ``calib.json`` (intrinsics and cam2ego as the index holds them), the input ``occflownet predict`` takes."""
     folder.mkdir(parents=True, exist_ok=True)
     for cam in sample.cameras:
         shutil.copyfile(world / cam.path, folder / f"{cam.name}.jpg")
