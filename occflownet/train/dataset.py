@@ -98,9 +98,10 @@ class TrainingSamples(Dataset):
     def _volume_of(self, time_offsets: np.ndarray, frames: list[int]) -> np.ndarray:
         """int64 [R]: the volume (index into ``frames``' copies) that rays of frames ``time_offsets`` render."""
         t = time_offsets.astype(np.int64)
-        if self.cfg.flow:
-            lookup = {f: n for n, f in enumerate(frames)}
-            return np.array([lookup[int(x)] for x in t], dtype=np.int64)
+        if self.cfg.flow:  # frames = [0, sorted t ≠ 0]: the position of t in that list, for all rays at once
+            keys = np.asarray(frames, dtype=np.int64)
+            order = np.argsort(keys)
+            return order[np.searchsorted(keys[order], t)]
         return (t != 0).astype(np.int64)
 
     def _free_rays(self, position: int, rng: np.random.Generator):
