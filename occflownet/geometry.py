@@ -75,3 +75,18 @@ def rotation_z(angle: float) -> np.ndarray:
     T = np.eye(4)
     T[:2, :2] = [[c, -s], [s, c]]
     return T
+
+
+def slerp(q0, q1, alpha: float) -> np.ndarray:
+    """Spherical linear interpolation between unit quaternions (w, x, y, z): ``q0`` at alpha 0, ``q1`` at 1, along
+    the shorter arc."""
+    q0 = np.asarray(q0, dtype=np.float64) / np.linalg.norm(q0)
+    q1 = np.asarray(q1, dtype=np.float64) / np.linalg.norm(q1)
+    dot = float(q0 @ q1)
+    if dot < 0:                      # q and -q are the same rotation: take the shorter way
+        q1, dot = -q1, -dot
+    if dot > 0.9995:                 # nearly equal: linear interpolation is exact to rounding
+        q = q0 + alpha * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = np.arccos(dot)
+    return (np.sin((1 - alpha) * theta) * q0 + np.sin(alpha * theta) * q1) / np.sin(theta)

@@ -2,12 +2,15 @@
 
 One walk for everyone who needs to know which voxels a ray passes: the synthetic world's visibility masks
 (``occflownet.synth.frame``: ``mask_lidar``, ``mask_camera``), the fog metric's crossed voxels
-(``occflownet.eval.fog``) and RayIoU's first hits (``occflownet.eval.ray_iou``). numpy only; it imports nothing
-else from the package but the grid's defaults, so ``eval`` and ``synth`` can both use it without importing each
-other.
+(``occflownet.eval.fog``), RayIoU's first hits (``occflownet.eval.ray_iou``) and the LiDAR and camera visibility of
+the label pipeline (``occflownet.labels``). It imports nothing else from the package but the grid's defaults, so
+every stage can use it. Two engines compute the same walk: numpy (lock-step over all rays, always available) and
+numba (``occflownet.voxel_walk_numba``, compiled and parallel, when numba is installed); ``engine="auto"`` picks
+numba when it can.
 
-- ``walk_rays(volume, origins, directions, ...)``: the engine. All rays advance in lock-step, one voxel per numpy
-  step; the volume is padded with a one-voxel border of ``OUTSIDE`` so that no bounds checks are needed.
+- ``walk_rays(volume, origins, directions, ...)``: the walk. In the numpy engine all rays advance in lock-step, one
+  voxel per numpy step, and the volume is padded with a one-voxel border of ``OUTSIDE`` so that no bounds checks
+  are needed; the numba engine walks one ray per loop iteration with bounds checks.
 - ``traverse(origins, dirs, occupied, t_max, lower, voxel_size)``: the voxels rays visit up to and including the
   first occupied one (the masks and the fog metric).
 
@@ -29,6 +32,7 @@ from occflownet.occ3d import GRID
 
 OUTSIDE = 254  # code of the border around the volume: a ray that reaches it has left the grid
 TIES = ("first", "last")
+ENGINES = ("auto", "numpy", "numba")
 
 
 class VoxelWalk(NamedTuple):
@@ -44,7 +48,7 @@ class VoxelWalk(NamedTuple):
 
 def walk_rays(volume: np.ndarray, origins: np.ndarray, directions: np.ndarray, *, empty: int = 0,
               lower=(0.0, 0.0, 0.0), voxel_size: float = 1.0, t_end: np.ndarray | None = None,
-              ties: str = "first", visited: bool = False) -> VoxelWalk:
+              ties: str = "first", visited: bool = False, engine: str = "auto") -> VoxelWalk:
     """Walk rays voxel by voxel through ``volume`` until each one stops.
 
     volume: integer or bool [X, Y, Z], values < ``OUTSIDE``; voxels equal to ``empty`` let rays through, any other
@@ -58,9 +62,14 @@ def walk_rays(volume: np.ndarray, origins: np.ndarray, directions: np.ndarray, *
     it also stops in the voxel whose exit crossing lies at or beyond ``min(t_end, grid exit)`` (code ``empty``,
     t = that crossing), the grid exit being the slab test's exact value. ``ties``: ``"first"`` or ``"last"``, see
     the module docstring. ``visited``: also return the voxels visited.
+
+    ``engine``: ``"numpy"`` (lock-step over all rays), ``"numba"`` (compiled, one ray per iteration, parallel;
+    ``occflownet.voxel_walk_numba``) or ``"auto"`` (numba when it is installed). Both give identical results.
     """
     if ties not in TIES:
         raise ValueError(f"ties must be one of {TIES}, got {ties!r}")
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
     volume = np.asarray(volume)
     shape = np.asarray(volume.shape, dtype=np.int64)
     if volume.ndim != 3:
@@ -70,6 +79,10 @@ def walk_rays(volume: np.ndarray, origins: np.ndarray, directions: np.ndarray, *
     if len(o) != len(d):
         raise ValueError(f"origins ({len(o)}) and directions ({len(d)}) must have one row per ray")
     lower = np.asarray(lower, dtype=np.float64)
+    if volume.size and int(volume.max()) >= OUTSIDE:
+        raise ValueError(f"volume values must be < {OUTSIDE}")
+    if _use_numba(engine):
+        return _walk_numba(volume, o, d, empty, lower, float(voxel_size), t_end, ties, visited)
     code = np.full(len(o), empty, dtype=np.uint8)
     t_exit = np.full(len(o), np.inf)
     padded = np.full(tuple(shape + 2), OUTSIDE, dtype=np.uint8)
@@ -84,6 +97,34 @@ def walk_rays(volume: np.ndarray, origins: np.ndarray, directions: np.ndarray, *
     if seen is not None:
         seen = seen[:-1].reshape(padded.shape)[1:-1, 1:-1, 1:-1].copy()
     return VoxelWalk(code, t_exit, seen)
+
+
+def _use_numba(engine: str) -> bool:
+    if engine == "numpy":
+        return False
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        if engine == "numba":
+            raise ImportError("walk_rays(engine='numba') needs numba (pip install numba, or the train/labels "
+                              "extra)") from None
+        return False
+    return True
+
+
+def _walk_numba(volume, o, d, empty, lower, voxel_size, t_end, ties, visited) -> VoxelWalk:
+    from occflownet.voxel_walk_numba import walk
+
+    code = np.empty(len(o), dtype=np.uint8)
+    t_exit = np.empty(len(o))
+    seen = np.zeros(volume.shape if visited else (1, 1, 1), dtype=np.bool_)
+    ends = np.zeros(len(o)) if t_end is None else np.ascontiguousarray(np.asarray(t_end, np.float64).reshape(-1))
+    if len(ends) != len(o):
+        raise ValueError(f"t_end must have one value per ray ({len(o)}), got {len(ends)}")
+    walk(np.ascontiguousarray(volume, dtype=np.uint8), np.uint8(empty), np.ascontiguousarray(o),
+         np.ascontiguousarray(d), lower, voxel_size, ends, t_end is not None, ties == "last", seen, visited, code,
+         t_exit)
+    return VoxelWalk(code, t_exit, seen if visited else None)
 
 
 def _enter(o, d, shape, lower, voxel_size, t_end):

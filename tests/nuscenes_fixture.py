@@ -5,6 +5,8 @@ World (global frame, offset far from the origin like real nuScenes maps):
 - a moving car (raw 17) and a walking pedestrian (raw 2), with sample_annotation boxes and instances;
 - a bicycle (raw 14, Occ3D 2: *not* in the dynamic filter set) standing still;
 - a few returns on the ego car itself (raw 31, 'vehicle.ego').
+Between consecutive keyframes the LiDAR also records ``LIDAR_SWEEPS`` non-keyframe sweeps (``sweeps/LIDAR_TOP``, no
+lidarseg, like nuScenes), which the sample index ignores and the label pipeline accumulates.
 The ego drives a curve with some pitch and roll; each camera fires at its own time (up to ±75 ms from the LiDAR),
 so a reader that used the LiDAR's ego pose for a camera would misplace that camera by up to ~0.7 m.
 Scene ``scene-a`` has 5 keyframes and Occ3D labels; ``scene-b`` has 2 keyframes, no ``gts`` directory.
@@ -29,6 +31,7 @@ LIDAR2EGO = make_transform(np.array([0.7071, 0.0, 0.0, -0.7071]), [0.94, 0.0, 1.
 ORIGIN = np.array([411.3, 1180.9, 0.0])  # global position of the trajectory start
 CAMERA_DELAY_US = [-75_000, -45_000, -15_000, 15_000, 45_000, 75_000]  # camera time - LiDAR time
 KEYFRAME_US = 500_000
+LIDAR_SWEEPS = 2  # non-keyframe LiDAR sweeps between consecutive keyframes
 SCENES = (("scene-a", 5, 1_533_000_000_000_000), ("scene-b", 2, 1_533_100_000_000_000))
 # returns from the ego car's bonnet (ego frame), seen by CAM_FRONT; labelled 'vehicle.ego'
 EGO_BODY_POINTS = np.array([[3.9, 0.0, 0.9], [3.9, 0.3, 1.0], [-1.0, -0.5, 0.6]])
@@ -113,8 +116,9 @@ class Fixture:
     def lidar_time(self, scene: int, k: int) -> int:
         return SCENES[scene][2] + k * KEYFRAME_US
 
-    def points_global(self, scene: int, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """The world as the LiDAR of keyframe k saw it: global points [N, 3] and raw labels [N] (no ego points)."""
+    def points_global(self, scene: int, k: float) -> tuple[np.ndarray, np.ndarray]:
+        """The world as the LiDAR saw it at keyframe k (fractional k: a sweep between keyframes): global points
+        [N, 3] and raw labels [N] (no ego points)."""
         s = k * KEYFRAME_US / 1e6
         pts, raw = [self.static], [self.static_raw]
         for mover in MOVERS:
@@ -207,6 +211,8 @@ def _write_sample(fx: Fixture, t: dict, si: int, k: int, tok: str, tokens: list,
                              "fileformat": "pcd", "is_key_frame": True, "height": 0, "width": 0,
                              "filename": f"samples/RADAR_FRONT/{scene}_{k}.pcd", "prev": "", "next": ""})
     _write_lidar(fx, t, si, k, scene, lidar_us)
+    if k + 1 < len(tokens):
+        _write_lidar_sweeps(fx, t, si, k, scene, tokens)
     # boxes
     for m in MOVERS:
         box = mover_box(m, k * KEYFRAME_US / 1e6)
@@ -225,21 +231,42 @@ def _write_sample(fx: Fixture, t: dict, si: int, k: int, tok: str, tokens: list,
                             mask_camera=(sem < 12).astype(np.uint8))
 
 
-def _write_lidar(fx: Fixture, t: dict, si: int, k: int, scene: str, lidar_us: int) -> None:
-    """The LiDAR sweep of keyframe k (in the LiDAR frame, with the ego-body points) and its lidarseg labels."""
+def _sweep_file(fx: Fixture, si: int, k: float, path: Path) -> np.ndarray:
+    """Write the LiDAR sweep at keyframe k (fractional: between keyframes) to ``path``, in the LiDAR frame with the
+    ego-body points last; returns the raw labels of its points."""
     pts, raw = fx.points_global(si, k)
-    lidar2global = ego_pose(si, lidar_us) @ LIDAR2EGO
+    lidar2global = ego_pose(si, SCENES[si][2] + round(k * KEYFRAME_US)) @ LIDAR2EGO
     local = transform_points(invert(lidar2global), pts)
     ego_body = transform_points(invert(LIDAR2EGO), EGO_BODY_POINTS)
     local = np.concatenate([local, ego_body])
-    raw = np.concatenate([raw, np.full(3, RAW_EGO, dtype=np.uint8)])
     sweep = np.zeros((len(local), 5), dtype=np.float32)
     sweep[:, :3] = local
     sweep[:, 4] = np.arange(len(local)) % 32
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sweep.tofile(path)
+    return np.concatenate([raw, np.full(3, RAW_EGO, dtype=np.uint8)])
+
+
+def _write_lidar_sweeps(fx: Fixture, t: dict, si: int, k: int, scene: str, tokens: list) -> None:
+    """The non-keyframe LiDAR sweeps between keyframes k and k + 1 (no lidarseg; each belongs to the nearer one)."""
+    for j in range(1, LIDAR_SWEEPS + 1):
+        frac = j / (LIDAR_SWEEPS + 1)
+        time_us = fx.lidar_time(si, k) + round(frac * KEYFRAME_US)
+        sd = token(scene, k, LIDAR, "sweep", j)
+        fname = f"sweeps/{LIDAR}/{scene}__{LIDAR}__{time_us}.pcd.bin"
+        _sweep_file(fx, si, k + frac, fx.root / fname)
+        t["ego_pose"].append({"token": token("ego", sd), "timestamp": time_us,
+                              "translation": ego_pose(si, time_us)[:3, 3].tolist(), "rotation": _quat(ego_pose(si, time_us))})
+        t["sample_data"].append({"token": sd, "sample_token": tokens[k] if frac <= 0.5 else tokens[k + 1],
+                                 "ego_pose_token": token("ego", sd), "calibrated_sensor_token": token("calib", LIDAR),
+                                 "timestamp": time_us, "fileformat": "pcd", "is_key_frame": False, "height": 0,
+                                 "width": 0, "filename": fname, "prev": "", "next": ""})
+
+
+def _write_lidar(fx: Fixture, t: dict, si: int, k: int, scene: str, lidar_us: int) -> None:
+    """The LiDAR sweep of keyframe k (in the LiDAR frame, with the ego-body points) and its lidarseg labels."""
     lidar_sd = token(scene, k, LIDAR)
-    lidar_file = fx.root / f"samples/{LIDAR}/{scene}__{LIDAR}__{lidar_us}.pcd.bin"
-    lidar_file.parent.mkdir(parents=True, exist_ok=True)
-    sweep.tofile(lidar_file)
+    raw = _sweep_file(fx, si, k, fx.root / f"samples/{LIDAR}/{scene}__{LIDAR}__{lidar_us}.pcd.bin")
     seg = f"lidarseg/{fx.version}/{lidar_sd}_lidarseg.bin"
     (fx.root / seg).parent.mkdir(parents=True, exist_ok=True)
     raw.astype(np.uint8).tofile(fx.root / seg)

@@ -1,8 +1,8 @@
 """The layout rules of the repository, checked on the source tree (docs/layout.md).
 
 - imports run along the data flow: every module belongs to one layer and imports only from its own layer or the
-  ones before it (core → synth → data → model → render → train → eval → predict → export → serve → quickstart →
-  commands → cli), and no two modules import each other, directly or through others;
+  ones before it (core → data → labels → synth → model → render → train → eval → predict → export → serve →
+  quickstart → commands → cli), and no two modules import each other, directly or through others;
 - no function is longer than 60 lines, except a numba kernel or one whose docstring gives the reason
   (a line starting with ``Long:``);
 - the packages pyproject.toml installs are the package folders of the tree;
@@ -26,9 +26,10 @@ MAX_LINES = 60
 # Layers in data-flow order; a module's layer is that of its longest matching prefix.
 LAYERS = (
     ("core", ("occflownet", "occflownet.occ3d", "occflownet.geometry", "occflownet.rig", "occflownet.contract",
-              "occflownet.pictures", "occflownet.voxel_walk")),
-    ("synth", ("occflownet.synth",)),
+              "occflownet.pictures", "occflownet.voxel_walk", "occflownet.voxel_walk_numba", "occflownet.files")),
     ("data", ("occflownet.data",)),
+    ("labels", ("occflownet.labels",)),
+    ("synth", ("occflownet.synth",)),
     ("model", ("occflownet.model",)),
     ("render", ("occflownet.render",)),
     ("train", ("occflownet.train",)),

@@ -1,7 +1,9 @@
 """`occflownet synth`: write a synthetic driving world in the exact nuScenes (+ lidarseg + Occ3D) layout."""
 import sys
 
-HELP = "synthetic nuScenes-format world (images, LiDAR, lidarseg, boxes, Occ3D ground truth)"
+from occflownet.synth.generate import DEFAULT_SWEEPS
+
+HELP = "synthetic nuScenes-format world (images, LiDAR sweeps, lidarseg, boxes), labelled by `occflownet labels`"
 
 
 def add_arguments(parser):
@@ -11,6 +13,8 @@ def add_arguments(parser):
     parser.add_argument("--seed", type=int, default=0, help="random seed; same seed, same files (default 0)")
     parser.add_argument("--width", type=int, default=480, help="image width in pixels (default 480, 0.3 x nuScenes)")
     parser.add_argument("--height", type=int, default=270, help="image height in pixels (default 270)")
+    parser.add_argument("--sweeps", type=int, default=DEFAULT_SWEEPS,
+                        help=f"LiDAR sweeps between consecutive keyframes (default {DEFAULT_SWEEPS}; nuScenes has 9)")
     parser.add_argument("--version", default="v1.0-trainval", help="dataset version folder (default v1.0-trainval)")
     parser.add_argument("--preview", action="store_true", help="also write DIR/preview/<sample token>.png")
     parser.add_argument("--overwrite", action="store_true", help="replace a dataset already in DIR")
@@ -38,7 +42,7 @@ def run(args) -> int:
                              cross_street_probability=args.cross_street)
         result = generate(args.out, scenes=args.scenes, frames=args.frames, seed=args.seed, width=args.width,
                           height=args.height, version=args.version, preview=args.preview, config=config,
-                          progress=not args.no_progress, overwrite=args.overwrite)
+                          progress=not args.no_progress, overwrite=args.overwrite, sweeps=args.sweeps)
     except (ValueError, FileExistsError) as e:
         print(f"occflownet synth: {e}", file=sys.stderr)
         return 2

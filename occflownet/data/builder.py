@@ -21,7 +21,7 @@ from occflownet.geometry import make_transform
 CHANNELS = (*CAMERAS, LIDAR)
 
 
-def _pose(record: dict, table: str) -> np.ndarray:
+def pose_matrix(record: dict, table: str) -> np.ndarray:
     """4×4 child→parent from a record's ``rotation`` (w, x, y, z) and ``translation``."""
     rot = np.asarray(field(record, table, "rotation"), dtype=np.float64)
     trans = np.asarray(field(record, table, "translation"), dtype=np.float64)
@@ -32,8 +32,8 @@ def _pose(record: dict, table: str) -> np.ndarray:
     return make_transform(rot, trans)
 
 
-def _keyframe_data(tables: Tables) -> dict[tuple[str, str], dict]:
-    """(sample token, channel) → keyframe sample_data record, for the six cameras and the LiDAR."""
+def channel_of_calibration(tables: Tables) -> dict[str, str]:
+    """calibrated_sensor token → sensor channel (e.g. LIDAR_TOP), each reference checked."""
     channel_of_sensor = {t: field(r, "sensor", "channel") for t, r in tables.by_token("sensor").items()}
     channel_of_calib = {}
     for token, r in tables.by_token("calibrated_sensor").items():
@@ -41,6 +41,12 @@ def _keyframe_data(tables: Tables) -> dict[tuple[str, str], dict]:
         if sensor not in channel_of_sensor:
             raise DatasetError(f"calibrated_sensor {token} refers to sensor token {sensor!r}, which table 'sensor' lacks")
         channel_of_calib[token] = channel_of_sensor[sensor]
+    return channel_of_calib
+
+
+def _keyframe_data(tables: Tables) -> dict[tuple[str, str], dict]:
+    """(sample token, channel) → keyframe sample_data record, for the six cameras and the LiDAR."""
+    channel_of_calib = channel_of_calibration(tables)
     out: dict[tuple[str, str], dict] = {}
     for r in tables.records["sample_data"]:
         if not field(r, "sample_data", "is_key_frame"):
@@ -98,8 +104,14 @@ def build_index(dataroot, version: str | None = None, verify_files: bool = False
 
     ``verify_files``: also check that every image, LiDAR and lidarseg file exists (one error listing the missing
     ones). Without it, a missing data file is reported when it is loaded."""
-    dataroot = Path(dataroot)
-    tables = load_tables(dataroot, version)
+    return index_from_tables(load_tables(dataroot, version), verify_files=verify_files)
+
+
+def index_from_tables(tables: Tables, verify_files: bool = False, occupancy: bool = True) -> SampleIndex:
+    """``build_index`` on tables already read. ``occupancy=False``: do not look for Occ3D labels (every
+    ``occupancy_path`` empty), for the label pipeline, which runs before they exist (or while they are half
+    written)."""
+    dataroot = tables.dataroot
     version = tables.version
     keyframes = _keyframe_data(tables)
     lidarseg = _lidarseg_files(tables)
@@ -118,7 +130,7 @@ def build_index(dataroot, version: str | None = None, verify_files: bool = False
             cols["sample_timestamp"].append(s["timestamp"])
             cols["sample_scene"].append(len(scene_names))
             _add_sensors(cols, tables, keyframes, token, name, lidarseg)
-            cols["occupancy_path"].append(_occupancy_path(dataroot, name, token))
+            cols["occupancy_path"].append(_occupancy_path(dataroot, name, token) if occupancy else "")
             for box in boxes_of_sample.get(token, []):
                 _add_box(cols, tables, box, instance_ids, category_ids)
             cols["box_start"].append(len(cols["box_label"]))
@@ -179,8 +191,8 @@ def _add_sensors(cols, tables: Tables, keyframes, token: str, scene: str, lidars
         group = cols if channel == LIDAR else cam_cols
         group[f"{prefix}_token"].append(sd["token"])
         group[f"{prefix}_path"].append(field(sd, "sample_data", "filename"))
-        group[f"{prefix}_sensor2ego"].append(_pose(calib, "calibrated_sensor"))
-        group[f"{prefix}_ego2global"].append(_pose(ego, "ego_pose"))
+        group[f"{prefix}_sensor2ego"].append(pose_matrix(calib, "calibrated_sensor"))
+        group[f"{prefix}_ego2global"].append(pose_matrix(ego, "ego_pose"))
         group[f"{prefix}_timestamp"].append(field(sd, "sample_data", "timestamp"))
         if channel == LIDAR:
             cols["lidarseg_path"].append(lidarseg.get(sd["token"], ""))
@@ -204,7 +216,7 @@ def _add_box(cols, tables: Tables, box: dict, instance_ids: dict, category_ids: 
     instance = tables.get("instance", instance_token, where)
     category = tables.get("category", field(instance, "instance", "category_token"), f"instance {instance_token}")
     name = field(category, "category", "name")
-    pose = _pose(box, "sample_annotation")  # validates rotation/translation
+    pose = pose_matrix(box, "sample_annotation")  # validates rotation/translation
     size = np.asarray(field(box, "sample_annotation", "size"), dtype=np.float64)
     if size.shape != (3,) or not (size > 0).all():
         raise DatasetError(f"{where}: size must be 3 positive numbers (w, l, h), got {size.tolist()}")

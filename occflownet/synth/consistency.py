@@ -1,11 +1,13 @@
 """Consistency checks of a synthetic world: do LiDAR labels, Occ3D voxels and camera depth agree?
 
-Images, LiDAR and Occ3D ground truth come from one geometry, so they should. Two measurements, used by
+Images, LiDAR and the geometric truth come from one geometry, so they should. Two measurements, used by
 ``tests/test_synth_consistency.py`` (thresholds) and ``benchmarks/synth_consistency.py`` (the figures in
 docs/synth.md):
 
-- ``lidar_label_agreement(root, version)``: read back from the files on disk, each LiDAR point moved LiDAR → ego
-  with its calibrated_sensor, its mapped lidarseg class against the class of the labels.npz voxel it falls in;
+- ``lidar_label_agreement(root, version)``: read back from the files on disk, each keyframe LiDAR point moved LiDAR →
+  ego with its calibrated_sensor, its mapped lidarseg class against the class of the voxel it falls in in the
+  keyframe's geometric truth (``truth/<scene>/<sample token>/semantics.npz``; the benchmark labels in ``gts/`` are
+  made from these points, so comparing with them would say little);
 - ``lidar_camera_depths(world, rig, t0_us, seed, scene_index, frames)``: in memory, each LiDAR point projected into
   each camera (LiDAR → ego at LiDAR time → global → ego at camera time → camera), its z-depth against the depth of
   the camera ray through its exact projection and against the rendered depth of the pixel it falls in.
@@ -21,15 +23,15 @@ from occflownet.geometry import make_transform, transform_points
 from occflownet.occ3d import GRID, map_lidarseg
 from occflownet.synth.camera import cast_rays
 from occflownet.synth.frame import render_keyframe
-from occflownet.synth.preview import project_lidar
+from occflownet.synth.preview import project_points
 
 _TABLES = ("sample", "sample_data", "calibrated_sensor", "sensor", "scene", "lidarseg")
 
 
 def lidar_label_agreement(root, version: str) -> tuple[np.ndarray, np.ndarray]:
-    """(point classes uint8 [N], voxel classes at the points uint8 [N]) over every LiDAR sweep of a dataset written
-    by ``generate``, for the points inside the grid: the raw lidarseg index mapped to Occ3D
-    (``occ3d.map_lidarseg``) and the ``semantics`` of the keyframe's labels.npz at the point's voxel."""
+    """(point classes uint8 [N], voxel classes at the points uint8 [N]) over every keyframe LiDAR sweep of a
+    dataset written by ``generate``, for the points inside the grid: the raw lidarseg index mapped to Occ3D
+    (``occ3d.map_lidarseg``) and the geometric truth of the keyframe at the point's voxel."""
     root = Path(root)
     t = {n: json.loads((root / version / f"{n}.json").read_text()) for n in _TABLES}
     cs = {r["token"]: r for r in t["calibrated_sensor"]}
@@ -40,13 +42,13 @@ def lidar_label_agreement(root, version: str) -> tuple[np.ndarray, np.ndarray]:
     own, vox = [], []
     for sd in t["sample_data"]:
         calib = cs[sd["calibrated_sensor_token"]]
-        if calib["sensor_token"] != lidar_sensor:
+        if calib["sensor_token"] != lidar_sensor or not sd["is_key_frame"]:
             continue
         pts = np.fromfile(root / sd["filename"], dtype=np.float32).reshape(-1, 5)
         raw = np.fromfile(root / seg[sd["token"]], dtype=np.uint8)
         ego = transform_points(make_transform(calib["rotation"], calib["translation"]), pts[:, :3])
         s = sample[sd["sample_token"]]
-        with np.load(root / "gts" / scene_name[s["scene_token"]] / s["token"] / "labels.npz") as z:
+        with np.load(root / "truth" / scene_name[s["scene_token"]] / s["token"] / "semantics.npz") as z:
             sem = z["semantics"]
         inside = GRID.contains(ego)
         ijk = GRID.index_of(ego[inside])
@@ -69,10 +71,10 @@ def lidar_camera_depths(world, rig, t0_us: int, seed: int, scene_index: int, fra
         kf = render_keyframe(world, k, rig, t0_us, seed, scene_index)
         cls = map_lidarseg(kf.scan.raw)
         for c in range(len(kf.cameras)):
-            u, v, idx = project_lidar(kf, rig, c)
             cam2global = kf.camera_ego2global[c] @ rig.cam2ego[c]
             T = np.linalg.inv(cam2global) @ kf.lidar_ego2global @ rig.lidar2ego
             K = rig.intrinsics[c]
+            u, v, idx = project_points(kf.scan.points[:, :3].astype(np.float64), T, K, rig.width, rig.height)
             d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
             t_cam = (kf.camera_times_us[c] - t0_us) * 1e-6
             t, _ = cast_rays(world.boxes_at(t_cam), cam2global[:3, 3], d_cam @ cam2global[:3, :3].T)

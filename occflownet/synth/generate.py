@@ -1,13 +1,15 @@
-"""Write a synthetic dataset in the exact nuScenes (+ lidarseg, + Occ3D) layout.
+"""Write a synthetic dataset in the exact nuScenes (+ lidarseg, + Occ3D) layout, then label it.
 
     ROOT/<version>/{13 tables}.json, lidarseg.json, splits.json
     ROOT/samples/CAM_*/<log>__<channel>__<timestamp>.jpg
     ROOT/samples/LIDAR_TOP/<log>__LIDAR_TOP__<timestamp>.pcd.bin   float32 [N, 5] (x, y, z, intensity, ring), LiDAR frame
-    ROOT/lidarseg/<version>/<lidar sample_data token>_lidarseg.bin  uint8 [N] raw lidarseg index
-    ROOT/gts/<scene name>/<sample token>/labels.npz                 semantics, mask_lidar, mask_camera uint8 [200,200,16]
+    ROOT/sweeps/LIDAR_TOP/<log>__LIDAR_TOP__<timestamp>.pcd.bin    the LiDAR sweeps between keyframes (no lidarseg)
+    ROOT/lidarseg/<version>/<lidar sample_data token>_lidarseg.bin  uint8 [N] raw lidarseg index (keyframes)
+    ROOT/gts/<scene name>/<sample token>/labels.npz                 Occ3D labels, made by occflownet.labels
+    ROOT/truth/<scene name>/<sample token>/semantics.npz            the geometry voxelised (checks the labels only)
     ROOT/maps/<map token>.png, ROOT/preview/<sample token>.png (with preview=True)
 
-Only keyframes are written (every sample_data record is a keyframe).
+Cameras are written at keyframes only; the LiDAR also at ``sweeps`` times between consecutive keyframes.
 """
 from __future__ import annotations
 
@@ -24,12 +26,15 @@ import numpy as np
 
 from occflownet.occ3d import CAMERAS, DRIVEABLE_SURFACE, LIDAR
 from occflownet.geometry import yaw_to_quaternion
-from occflownet.synth.frame import Keyframe, SensorRig, render_keyframe
+from occflownet.labels import LabelConfig, label_root
+from occflownet.labels.npz import write_uint8_npz
+from occflownet.synth.frame import Keyframe, SensorRig, render_keyframe, render_sweep, sweep_times_us
 from occflownet.synth.layout import WorldConfig, build_world
 from occflownet.synth.writer import (Tables, calibrated_sensor_records, link, pose_record, token,
                                      visibility_token)
 
 DEFAULT_VERSION = "v1.0-trainval"
+DEFAULT_SWEEPS = 4  # LiDAR sweeps between keyframes (10 Hz; nuScenes records 9, at 20 Hz)
 FIRST_TIMESTAMP_US = 1533151603000000
 ANNOTATION_RANGE_M = 70.0  # agents whose centre is this close to the ego (xy) are annotated (covers the grid)
 
@@ -43,32 +48,23 @@ class SynthResult:
     seconds: float
 
 
-def write_labels_npz(path: Path, semantics: np.ndarray, mask_lidar: np.ndarray, mask_camera: np.ndarray) -> None:
-    """Occ3D labels.npz, byte-identical for identical arrays (fixed zip timestamps, unlike ``np.savez``)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for key, arr in (("semantics", semantics), ("mask_lidar", mask_lidar), ("mask_camera", mask_camera)):
-            buf = io.BytesIO()
-            np.lib.format.write_array(buf, np.ascontiguousarray(arr, dtype=np.uint8), allow_pickle=False)
-            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
-            zf.writestr(info, buf.getvalue())
-
-
 def _clear(root: Path, version: str, overwrite: bool) -> None:
     if (root / version).exists() and any((root / version).iterdir()):
         if not overwrite:
             raise FileExistsError(f"{root / version} already holds a dataset; pass overwrite=True (--overwrite)")
-        for sub in (root / version, root / "samples", root / "lidarseg" / version, root / "gts", root / "maps",
-                    root / "preview"):
+        for sub in (root / version, root / "samples", root / "sweeps", root / "lidarseg" / version, root / "gts",
+                    root / "truth", root / "maps", root / "preview"):
             if sub.exists():
                 shutil.rmtree(sub)
 
 
 def generate(out, scenes: int = 1, frames: int = 6, seed: int = 0, width: int = 480, height: int = 270,
              version: str = DEFAULT_VERSION, preview: bool = False, config: WorldConfig = WorldConfig(),
-             rig: SensorRig | None = None, progress: bool = True, overwrite: bool = False) -> SynthResult:
-    """Generate ``scenes`` scenes of ``frames`` keyframes each under ``out``. Deterministic for ``seed``."""
+             rig: SensorRig | None = None, progress: bool = True, overwrite: bool = False,
+             sweeps: int = DEFAULT_SWEEPS, labels: LabelConfig = LabelConfig()) -> SynthResult:
+    """Generate ``scenes`` scenes of ``frames`` keyframes each under ``out`` (``sweeps`` LiDAR sweeps between
+    consecutive keyframes), then label it with ``labels`` (``occflownet.labels.label_root``). Deterministic for
+    ``seed``."""
     import cv2
     from tqdm import tqdm
 
@@ -76,6 +72,8 @@ def generate(out, scenes: int = 1, frames: int = 6, seed: int = 0, width: int = 
         raise ValueError(f"need at least one scene and one frame, got scenes={scenes}, frames={frames}")
     if width < 16 or height < 16:
         raise ValueError(f"image size {width}x{height} too small (min 16x16)")
+    if sweeps < 0:
+        raise ValueError(f"sweeps must be >= 0, got {sweeps}")
     start = time.perf_counter()
     root = Path(out)
     _clear(root, version, overwrite)
@@ -86,7 +84,7 @@ def generate(out, scenes: int = 1, frames: int = 6, seed: int = 0, width: int = 
     for s in range(scenes):
         world = build_world(config, seed, s, frames)
         first_world = first_world or world
-        log_tokens.append(_write_scene(root, version, tables, rig, world, seed, s, frames, preview, bar, cv2))
+        log_tokens.append(_write_scene(root, version, tables, rig, world, seed, s, frames, sweeps, bar, cv2))
         scene_names.append(world.name)
     bar.close()
     _write_map(root, tables, seed, first_world, log_tokens, cv2)
@@ -95,11 +93,15 @@ def generate(out, scenes: int = 1, frames: int = 6, seed: int = 0, width: int = 
         {"train": scene_names, "val": scene_names}
     with open(root / version / "splits.json", "w") as f:
         json.dump(splits, f, indent=1)
+    label_root(root, version, labels, progress=progress)
+    if preview:
+        _write_previews(root, version, cv2)
     return SynthResult(root, version, scene_names, scenes * frames, time.perf_counter() - start)
 
 
-def _write_scene(root, version, tables, rig, world, seed, s, frames, preview, bar, cv2) -> str:
-    """Render scene ``s`` keyframe by keyframe, write its files and add its table records; returns its log token."""
+def _write_scene(root, version, tables, rig, world, seed, s, frames, sweeps, bar, cv2) -> str:
+    """Render scene ``s`` keyframe by keyframe (and the sweeps after each), write its files and add its table
+    records; returns its log token."""
     key = f"scene{s}"
     logfile = f"n{seed % 1000:03d}-2018-08-{1 + s % 28:02d}-synth-{s:04d}"
     log_tok = token(seed, key, "log")
@@ -118,17 +120,43 @@ def _write_scene(root, version, tables, rig, world, seed, s, frames, preview, ba
             channel_sd[ch].append(rec)
         for idx, ann in _annotations(world, kf, key, k, sample_tok, tables).items():
             ann_by_agent.setdefault(idx, []).append(ann)
-        write_labels_npz(root / "gts" / world.name / sample_tok / "labels.npz", kf.semantics, kf.mask_lidar,
-                         kf.mask_camera)
-        if preview:
-            from occflownet.synth.preview import preview_image
-
-            (root / "preview").mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(root / "preview" / f"{sample_tok}.png"),
-                        cv2.cvtColor(preview_image(kf, rig), cv2.COLOR_RGB2BGR))
+        write_uint8_npz(root / "truth" / world.name / sample_tok / "semantics.npz", semantics=kf.truth)
+        if k + 1 < frames:
+            channel_sd[LIDAR] += _sweep_records(root, tables, rig, world, seed, s, t0, key, k, sweeps, logfile, cs,
+                                                (sample_tok, token(seed, key, "sample", k + 1)))
         bar.update(1)
     _link_scene(tables, world, seed, key, log_tok, samples, channel_sd, ann_by_agent)
     return log_tok
+
+
+def _sweep_records(root, tables, rig, world, seed, s, t0, key, k, sweeps, logfile, cs, nearest) -> list[dict]:
+    """Write the LiDAR sweeps between keyframes k and k + 1 (no lidarseg, like nuScenes); return their sample_data
+    records (time order). ``nearest``: the two keyframes' sample tokens; a sweep belongs to the nearer one."""
+    out = []
+    (root / "sweeps" / LIDAR).mkdir(parents=True, exist_ok=True)
+    for j, us in enumerate(sweep_times_us(t0, k, sweeps)):
+        scan, pose = render_sweep(world, us, rig, t0, seed, s)
+        sd_tok = token(tables.seed, key, "sample_data", LIDAR, k, "sweep", j)
+        ego_tok = token(tables.seed, key, "ego_pose", LIDAR, k, "sweep", j)
+        tables.t["ego_pose"].append(pose_record(ego_tok, pose, timestamp=us))
+        rel = f"sweeps/{LIDAR}/{logfile}__{LIDAR}__{us}.pcd.bin"
+        scan.points.astype(np.float32).tofile(root / rel)
+        out.append({"token": sd_tok, "sample_token": nearest[0] if 2 * (j + 1) <= sweeps + 1 else nearest[1],
+                    "ego_pose_token": ego_tok, "calibrated_sensor_token": cs[LIDAR], "timestamp": us,
+                    "fileformat": "pcd", "is_key_frame": False, "height": 0, "width": 0, "filename": rel})
+    return out
+
+
+def _write_previews(root, version, cv2) -> None:
+    """preview/<sample token>.png for every keyframe, from the files written (labels included)."""
+    from occflownet.data.builder import build_index
+    from occflownet.synth.preview import preview_sample
+
+    index = build_index(root, version)
+    (root / "preview").mkdir(parents=True, exist_ok=True)
+    for p in range(len(index)):
+        picture = preview_sample(root, index[p])
+        cv2.imwrite(str(root / "preview" / f"{index.tokens[p]}.png"), cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
 
 
 def _link_scene(tables, world, seed, key, log_tok, samples, channel_sd, ann_by_agent) -> None:

@@ -1,0 +1,29 @@
+"""Files that appear whole or not at all: write to a temporary file in the destination's folder, then rename.
+
+``os.replace`` within one folder (one file system) is atomic, so a reader sees the old file or the new one, never a
+half-written one, and a run killed while writing leaves at most a hidden ``.<name>.*.tmp`` file behind.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+
+@contextmanager
+def atomic_path(path):
+    """Yield a temporary path beside ``path`` (same folder, created if needed); on a clean exit it replaces
+    ``path``, on an exception it is removed. The caller writes the temporary path (keeping its suffix, so that
+    libraries that look at the suffix, e.g. ``np.savez``, write what is asked)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + "".join(path.suffixes[-1:]), dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
