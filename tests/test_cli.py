@@ -5,7 +5,7 @@ from occflownet.cli import VERBS, build_parser
 
 
 def test_all_design_verbs_exist():
-    assert set(VERBS) == {"synth", "prepare", "train", "eval", "export", "predict", "serve", "quickstart"}
+    assert set(VERBS) == {"synth", "labels", "prepare", "train", "eval", "export", "predict", "serve", "quickstart"}
 
 
 def test_help_runs_without_torch():
@@ -24,3 +24,10 @@ def test_model_source_presets_are_the_model_presets():
 
     assert set(PRESET_NAMES) == set(PRESETS)
 
+
+
+def test_help_runs_without_the_training_extras():
+    """A serving install (no torch, scipy or numba) still starts the command line."""
+    code = ("import sys; from occflownet.cli import build_parser; build_parser().format_help(); "
+            "bad = [m for m in ('torch', 'scipy', 'numba') if m in sys.modules]; assert not bad, bad")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -1,6 +1,6 @@
 """Occupancy flow on the synthetic world (``synth_root``), through the real reader, rays and renderer.
 
-With the ground-truth occupancy of a keyframe as the 'prediction', rays of the adjacent keyframes t = ±1 that end
+With the geometric truth of a keyframe (every surface of the world voxelised) as the 'prediction', rays of the adjacent keyframes t = ±1 that end
 on an object which moved more than 1 m must render that object's class and depth much better through the warped
 volumes than through the unwarped one. This exercises every convention at once: the reader's poses and boxes,
 ``keyframe_flow`` (box transforms in the current ego frame), ``flow_moves``, the warp and ``render_rays``'s
@@ -21,14 +21,14 @@ MAX_RAYS = 1500
 @pytest.fixture(scope="module")
 def scene(synth_root):
     from occflownet.data.builder import build_index
-    from occflownet.data.loaders import load_occupancy
     from occflownet.data.rays import RayBuilder, RayConfig
+    from occflownet.synth.generate import load_truth
 
     root, _ = synth_root
     index = build_index(root)
     sample = index[POSITION]
     record = keyframe_flow(index, POSITION, horizon=1)
-    sem = torch.as_tensor(load_occupancy(root, sample.occupancy_path).semantics.astype(np.int64))
+    sem = torch.as_tensor(load_truth(root, sample.scene_name, sample.token).astype(np.int64))
     occupied = sem != FREE
     density = occupied.float()[None]
     logits = torch.zeros(1, *GRID.shape, NUM_CLASSES)

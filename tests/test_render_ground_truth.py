@@ -1,4 +1,4 @@
-"""Rendering the ground-truth volume of a synthetic keyframe along its own LiDAR rays with the official fine-sampling
+"""Rendering the geometric truth of a synthetic keyframe (every surface voxelised) along its own LiDAR rays with the official fine-sampling
 distribution: almost all the light is absorbed, at or behind the LiDAR point, by the labelled class.
 
 Known answers measured on this world (surface labels, σ = 1 m⁻¹ where occupied): mean weight sum 0.97 (the old
@@ -13,20 +13,20 @@ import torch
 
 from occflownet.occ3d import FREE, NUM_CLASSES
 from occflownet.data.index import load_index
-from occflownet.data.loaders import load_occupancy
 from occflownet.data.rays import RayBuilder
 from occflownet.render.volume_render import RenderConfig, render_rays
+from occflownet.synth.generate import load_truth
 
 
 def _ground_truth_render(root, lookup: str):
     index = load_index(root)
     position = len(index) // 2
-    labels = load_occupancy(root, index[position].occupancy_path)
+    semantics = load_truth(root, index[position].scene_name, index[position].token)
     rays = RayBuilder(index, root).rays(position)
     rays = rays.take(np.flatnonzero(rays.time_offsets == 0)[:4096])
-    occupied = torch.from_numpy(labels.semantics != FREE)
+    occupied = torch.from_numpy(semantics != FREE)
     density = occupied.float()                        # σ = 1 where the label is occupied, 0 where free
-    logits = 5.0 * torch.nn.functional.one_hot(torch.from_numpy(labels.semantics).long(), FREE + 1)[..., :NUM_CLASSES]
+    logits = 5.0 * torch.nn.functional.one_hot(torch.from_numpy(semantics).long(), FREE + 1)[..., :NUM_CLASSES]
     out = render_rays(density, logits.float(), torch.from_numpy(rays.origins), torch.from_numpy(rays.directions),
                       RenderConfig(lookup=lookup), torch.Generator().manual_seed(0))
     return out, rays

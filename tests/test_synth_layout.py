@@ -4,9 +4,10 @@ import json
 import cv2
 import numpy as np
 
-from occflownet.occ3d import CAMERAS, LIDAR, LIDARSEG_NAMES
+from occflownet.occ3d import CAMERAS, FREE, LIDAR, LIDARSEG_NAMES
 from occflownet.geometry import quaternion_to_matrix
 from occflownet.rig import default_rig
+from occflownet.synth.generate import DEFAULT_SWEEPS
 
 TABLES = ("category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose", "log",
           "scene", "sample", "sample_data", "sample_annotation", "map")
@@ -23,7 +24,11 @@ def test_all_tables_and_splits_exist(synth_root, synth_params):
     splits = json.loads((root / version / "splits.json").read_text())
     assert splits == {"train": ["scene-0001"], "val": ["scene-0001"]}
     assert len(t["sample"]) == synth_params["frames"]
-    assert len(t["sample_data"]) == 7 * synth_params["frames"] and all(sd["is_key_frame"] for sd in t["sample_data"])
+    frames = synth_params["frames"]
+    sweeps = [sd for sd in t["sample_data"] if not sd["is_key_frame"]]
+    assert len(t["sample_data"]) == 7 * frames + DEFAULT_SWEEPS * (frames - 1)
+    assert len(sweeps) == DEFAULT_SWEEPS * (frames - 1) and all(sd["filename"].startswith("sweeps/LIDAR_TOP/")
+                                                                 for sd in sweeps)
     assert len(t["ego_pose"]) == len(t["sample_data"])
     for table in TABLES:
         tokens = [r["token"] for r in t[table]]
@@ -91,7 +96,11 @@ def test_prev_next_chains_and_counts(synth_root):
         assert len(firsts) == len(t["scene"])
         seq = chain(sds, firsts[0]["token"])
         assert len(seq) == len(recs) and np.all(np.diff([r["timestamp"] for r in seq]) > 0)
-        assert [r["sample_token"] for r in seq] == [s["token"] for s in chain(samples, t["scene"][0]["first_sample_token"])]
+        keyframes = [r for r in seq if r["is_key_frame"]]
+        assert [r["sample_token"] for r in keyframes] == [s["token"] for s in chain(samples, t["scene"][0]["first_sample_token"])]
+        for r in seq:                                       # a sweep belongs to the keyframe nearest in time
+            gap = abs(samples[r["sample_token"]]["timestamp"] - r["timestamp"])
+            assert gap == min(abs(smp["timestamp"] - r["timestamp"]) for smp in samples.values())
     anns = {r["token"]: r for r in t["sample_annotation"]}
     for inst in t["instance"]:
         seq = chain(anns, inst["first_annotation_token"])
@@ -113,9 +122,13 @@ def test_sensor_files_poses_and_calibration(synth_root, synth_params):
     for sd in t["sample_data"]:
         calib = cs[sd["calibrated_sensor_token"]]
         ch = sensors[calib["sensor_token"]]
-        assert sd["filename"].startswith(f"samples/{ch}/") and (root / sd["filename"]).is_file()
+        folder = "samples" if sd["is_key_frame"] else "sweeps"
+        assert sd["filename"].startswith(f"{folder}/{ch}/") and (root / sd["filename"]).is_file()
         assert poses[sd["ego_pose_token"]]["timestamp"] == sd["timestamp"]
-        if ch == LIDAR:
+        if ch == LIDAR and not sd["is_key_frame"]:
+            assert sd["token"] not in seg                 # sweeps have no lidarseg, as in nuScenes
+            assert np.fromfile(root / sd["filename"], dtype=np.float32).size % 5 == 0
+        elif ch == LIDAR:
             lidar_sds += 1
             assert sd["filename"].endswith(".pcd.bin") and sd["fileformat"] == "pcd"
             pts = np.fromfile(root / sd["filename"], dtype=np.float32).reshape(-1, 5)
@@ -161,14 +174,21 @@ def test_annotations_are_global_boxes_with_sizes(synth_root):
     assert max(shifts) > 1.0 and min(shifts) < 1e-6  # some agents move, some are parked
 
 
-def test_occ3d_labels(synth_root, synth_params):
+def test_occ3d_labels_and_the_geometric_truth(synth_root, synth_params):
+    """gts/ holds the label pipeline's files (and its settings); truth/ the geometry voxelised, never the benchmark."""
     root, version = synth_root
     t = load(root, version)
     scene = t["scene"][0]["name"]
+    assert json.loads((root / "gts" / "labels.json").read_text())["format"] == 1
     for s in t["sample"]:
         with np.load(root / "gts" / scene / s["token"] / "labels.npz") as z:
             assert set(z.files) == {"semantics", "mask_lidar", "mask_camera"}
             for k in z.files:
                 assert z[k].dtype == np.uint8 and z[k].shape == (200, 200, 16)
             assert z["semantics"].max() == 17 and set(np.unique(z["mask_camera"])) == {0, 1}
-            assert 0.01 < z["mask_lidar"].mean() < z["mask_camera"].mean() < 0.6
+            assert 0.01 < z["mask_camera"].mean() <= z["mask_lidar"].mean() < 0.6
+            assert not (z["mask_camera"] & ~z["mask_lidar"]).any()
+            occupied = z["semantics"] != FREE
+        with np.load(root / "truth" / scene / s["token"] / "semantics.npz") as z:
+            truth = z["semantics"] != FREE
+        assert truth.sum() > 2 * occupied.sum() and (truth[occupied]).mean() > 0.97   # LiDAR sees part of it

@@ -1,12 +1,10 @@
-"""The camera mask and voxelisation against independent brute-force answers on small cases (the voxel walk
-itself: tests/test_voxel_walk.py)."""
+"""The geometric truth of the synthetic world: voxelisation of boxes and the ground against known answers (the
+benchmark labels come from the label pipeline: tests/test_labels_*.py)."""
 import numpy as np
 
 from occflownet.occ3d import FREE, Grid
-from occflownet.synth.frame import SensorRig, camera_mask, camera_rays, surface_rays
 from occflownet.synth.voxelize import voxelize
 from occflownet.synth.world import Boxes, GroundRaster, World
-from test_voxel_walk import brute_force
 
 
 def small_world(boxes: Boxes) -> World:
@@ -18,29 +16,6 @@ def box(center, half, yaw, raw=28):
     return Boxes(np.array([center], float), np.array([half], float), np.array([yaw], float),
                  np.array([raw], np.uint8), np.ones((1, 3), np.float32), np.zeros(1, np.int8),
                  np.ones(1, np.float32), np.full(1, -1, np.int32))
-
-
-def test_camera_mask_voxels_lie_on_camera_rays_before_first_occupied():
-    """Small grid, small rig, a building and the ground: the mask is exactly the union over the camera rays it
-    uses of the brute-force traversal, and every one of those rays leaves a camera centre inside its image."""
-    grid = Grid(lower=(-6.0, -6.0, -1.0), upper=(6.0, 6.0, 2.2), voxel_size=0.4, shape=(30, 30, 8))
-    world = small_world(box((3.0, 1.0, 1.0), (0.5, 1.5, 1.0), 0.4))
-    sem = voxelize(world, world.static, np.eye(4), grid)
-    occupied = sem != FREE
-    rig = SensorRig.default(48, 27, mask_ray_angle=0.05)
-    mask = camera_mask(rig, occupied, grid)
-    o1, d1 = camera_rays(rig)
-    seen = brute_force(o1, d1, occupied, np.full(len(o1), np.inf), grid.lower, grid.voxel_size)
-    o2, d2 = surface_rays(rig, occupied, ~seen, grid)
-    seen |= brute_force(o2, d2, occupied, np.ones(len(o2)), grid.lower, grid.voxel_size)
-    assert np.array_equal(mask, seen)
-    assert mask[occupied].any() and not mask[sem == 15].all()  # the building's far side is hidden
-    for o, d in ((o1, d1), (o2, d2)):
-        cams = [np.nonzero(np.all(np.isclose(rig.cam2ego[:, :3, 3], oi), 1))[0][0] for oi in o[::37]]
-        for c, di in zip(cams, d[::37]):
-            p = rig.cam2ego[c][:3, :3].T @ di  # direction in the camera frame
-            u, v, w = rig.intrinsics[c] @ p
-            assert w > 0 and 0 <= u / w <= rig.width and 0 <= v / w <= rig.height
 
 
 def test_voxelize_axis_aligned_and_rotated_boxes():

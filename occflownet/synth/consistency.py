@@ -23,6 +23,7 @@ from occflownet.geometry import make_transform, transform_points
 from occflownet.occ3d import GRID, map_lidarseg
 from occflownet.synth.camera import cast_rays
 from occflownet.synth.frame import render_keyframe
+from occflownet.synth.generate import load_truth
 from occflownet.synth.preview import project_points
 
 _TABLES = ("sample", "sample_data", "calibrated_sensor", "sensor", "scene", "lidarseg")
@@ -48,8 +49,7 @@ def lidar_label_agreement(root, version: str) -> tuple[np.ndarray, np.ndarray]:
         raw = np.fromfile(root / seg[sd["token"]], dtype=np.uint8)
         ego = transform_points(make_transform(calib["rotation"], calib["translation"]), pts[:, :3])
         s = sample[sd["sample_token"]]
-        with np.load(root / "truth" / scene_name[s["scene_token"]] / s["token"] / "semantics.npz") as z:
-            sem = z["semantics"]
+        sem = load_truth(root, scene_name[s["scene_token"]], s["token"])
         inside = GRID.contains(ego)
         ijk = GRID.index_of(ego[inside])
         own.append(map_lidarseg(raw[inside]))

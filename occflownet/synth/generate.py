@@ -48,6 +48,19 @@ class SynthResult:
     seconds: float
 
 
+def truth_path(root, scene_name: str, sample_token: str) -> Path:
+    """Where ``generate`` writes a keyframe's geometric truth: ``semantics`` uint8 [200, 200, 16] (17 free), every
+    surface of the world voxelised (``synth.voxelize``). It checks the labels in ``gts/``; it is never the
+    benchmark."""
+    return Path(root) / "truth" / scene_name / sample_token / "semantics.npz"
+
+
+def load_truth(root, scene_name: str, sample_token: str) -> np.ndarray:
+    """The geometric truth of a keyframe (``truth_path``)."""
+    with np.load(truth_path(root, scene_name, sample_token)) as z:
+        return z["semantics"]
+
+
 def _clear(root: Path, version: str, overwrite: bool) -> None:
     if (root / version).exists() and any((root / version).iterdir()):
         if not overwrite:
@@ -120,7 +133,7 @@ def _write_scene(root, version, tables, rig, world, seed, s, frames, sweeps, bar
             channel_sd[ch].append(rec)
         for idx, ann in _annotations(world, kf, key, k, sample_tok, tables).items():
             ann_by_agent.setdefault(idx, []).append(ann)
-        write_uint8_npz(root / "truth" / world.name / sample_tok / "semantics.npz", semantics=kf.truth)
+        write_uint8_npz(truth_path(root, world.name, sample_tok), semantics=kf.truth)
         if k + 1 < frames:
             channel_sd[LIDAR] += _sweep_records(root, tables, rig, world, seed, s, t0, key, k, sweeps, logfile, cs,
                                                 (sample_tok, token(seed, key, "sample", k + 1)))
