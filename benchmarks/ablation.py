@@ -39,6 +39,47 @@ ROWS = {
 }
 
 
+def train_row(train_root, run: Path, row: int, steps: int, seed: int, rays: int, num_workers: int = 1,
+              extra: tuple[str, ...] = ()) -> float:
+    """Train row ``row`` of ROWS to ``steps`` in ``run`` (resuming what is there; the learning rate is constant
+    after warm-up, so resuming to a larger budget continues the same run); returns the seconds this call took."""
+    train = [sys.executable, "-m", "occflownet", "train", "--preset", "tiny", "--dataroot", str(train_root),
+             "--split", "all", "--out", str(run), "--max-steps", str(steps), "--rays-per-step", str(rays), "--seed",
+             str(seed), "--num-workers", str(num_workers), "--quiet", "--resume", *ROWS[row][1], *extra]
+    t0 = time.time()
+    print(f"row {row} ({ROWS[row][0]}), seed {seed}, to {steps} steps\n  {' '.join(train)}", file=sys.stderr,
+          flush=True)
+    subprocess.run(train, check=True)
+    return time.time() - t0
+
+
+def evaluate_row(val_root, run: Path) -> dict:
+    """{"metrics": the eval JSON of the run's last checkpoint on split 'all' of ``val_root``, "density": σ figures}."""
+    predictions = run / "val_predictions"
+    evaluate = [sys.executable, "-m", "occflownet", "eval", "--checkpoint", str(run / "checkpoints" / "last.pt"),
+                "--dataroot", str(val_root), "--split", "all", "--save-predictions", str(predictions)]
+    res = subprocess.run(evaluate, check=True, capture_output=True, text=True)
+    out = {"metrics": json.loads(res.stdout), "density": density_stats(predictions)}
+    shutil.rmtree(predictions)
+    return out
+
+
+def done_rows(results_path: Path) -> set:
+    """(row, seed, steps) of the records already in a results.jsonl."""
+    if not results_path.exists():
+        return set()
+    return {(r["row"], r.get("seed", 0), r["steps"]) for r in map(json.loads, results_path.read_text().splitlines())}
+
+
+def append(results_path: Path, record: dict) -> None:
+    """Append one JSON line; an exclusive lock keeps lines whole when several studies share the file."""
+    import fcntl
+
+    with open(results_path, "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        f.write(json.dumps(record) + "\n")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--train", required=True)
@@ -55,34 +96,20 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results_path = out / "results.jsonl"
-    done = {json.loads(line)["row"] for line in results_path.read_text().splitlines()} if results_path.exists() else set()
+    done = {row for row, _, _ in done_rows(results_path)}
     for row in [int(r) for r in args.rows.split(",")]:
         if row in done:
             continue
-        name, extra = ROWS[row]
         run = out / f"row{row}"
-        train = [sys.executable, "-m", "occflownet", "train", "--preset", "tiny", "--dataroot", args.train,
-                 "--split", "all", "--out", str(run), "--max-steps", str(args.steps), "--rays-per-step",
-                 str(args.rays), "--seed", str(args.seed), "--num-workers", str(args.num_workers), "--quiet",
-                 "--resume", *extra]
         if args.phase in ("train", "all"):
-            t0 = time.time()
-            print(f"row {row}: {name}\n  {' '.join(train)}", file=sys.stderr, flush=True)
-            subprocess.run(train, check=True)
-            (run / "train_seconds.txt").write_text(f"{time.time() - t0:.1f}")
+            seconds = train_row(args.train, run, row, args.steps, args.seed, args.rays, args.num_workers)
+            (run / "train_seconds.txt").write_text(f"{seconds:.1f}")
         if args.phase == "train":
             continue
         t_train = float((run / "train_seconds.txt").read_text())
-        predictions = run / "val_predictions"
-        evaluate = [sys.executable, "-m", "occflownet", "eval", "--checkpoint", str(run / "checkpoints" / "last.pt"),
-                    "--dataroot", args.val, "--split", "all", "--save-predictions", str(predictions)]
-        res = subprocess.run(evaluate, check=True, capture_output=True, text=True)
-        metrics = json.loads(res.stdout)
-        record = {"row": row, "name": name, "options": extra, "steps": args.steps, "rays": args.rays,
-                  "train_seconds": round(t_train, 1), "metrics": metrics, "density": density_stats(predictions)}
-        shutil.rmtree(predictions)
-        with open(results_path, "a") as f:
-            f.write(json.dumps(record) + "\n")
+        append(results_path, {"row": row, "name": ROWS[row][0], "options": ROWS[row][1], "steps": args.steps,
+                              "rays": args.rays, "seed": args.seed, "train_seconds": round(t_train, 1),
+                              **evaluate_row(args.val, run)})
     if results_path.exists():
         print(table(results_path))
     return 0

@@ -1,15 +1,15 @@
-"""Consistency figures of the synthetic world: do LiDAR labels, Occ3D voxels and image depth agree?
+"""Consistency figures of the synthetic world: do LiDAR labels, the geometric truth and image depth agree?
 
     python benchmarks/synth_consistency.py [--scenes 2 --frames 6 --seed 0 --width 480 --height 270]
 
 Prints, over all keyframes:
-- LiDAR → gt: share of LiDAR points inside the grid whose voxel in labels.npz has the point's own class
-  (``occflownet.synth.consistency.lidar_label_agreement``: read back from the files on disk); per class too.
+- LiDAR → truth: share of keyframe LiDAR points inside the grid whose voxel in the geometric truth has the point's own
+  class (``occflownet.synth.consistency.lidar_label_agreement``: read back from the files on disk); per class too.
 - LiDAR → image depth: for every LiDAR point projected into a camera (``lidar_camera_depths``), |z-depth of the
   point − depth of the camera ray through its exact projection| and |… − rendered depth at its pixel|; share
   within 1 cm and 0.5 m, for all points and for points of static objects (dynamic agents move between LiDAR and
   camera times).
-- masks: mean of mask_lidar / mask_camera, classes present in the labels.
+- the labels (gts/, made by the label pipeline): mean of mask_lidar / mask_camera, classes present.
 """
 from __future__ import annotations
 
@@ -43,7 +43,7 @@ def main(argv=None) -> int:
         for p in sorted((root / "gts").glob("*/*/labels.npz")):
             with np.load(p) as z:
                 masks.append((z["mask_lidar"].mean(), z["mask_camera"].mean(), np.unique(z["semantics"])))
-    print(f"LiDAR points inside the grid: {len(own)}; in a gt voxel of their own class: {np.mean(own == vox):.4f}")
+    print(f"LiDAR points inside the grid: {len(own)}; in a truth voxel of their own class: {np.mean(own == vox):.4f}")
     for c in range(17):
         sel = own == c
         if sel.any():

@@ -85,11 +85,14 @@ def _synth(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
 
     argv = ["synth", "--out", str(paths.world), "--scenes", str(cfg.scenes), "--frames", str(cfg.frames),
             "--seed", str(cfg.seed), "--preview"]
-    if (paths.world / "v1.0-trainval" / "sample.json").is_file():
+    if (paths.world / "gts" / "labels.json").is_file():
         announce(argv, "   (the world exists: reused)")
         return
-    announce(argv)
-    generate(paths.world, scenes=cfg.scenes, frames=cfg.frames, seed=cfg.seed, preview=True)
+    made_before = (paths.world / "v1.0-trainval" / "sample.json").is_file()
+    announce(argv + (["--overwrite"] if made_before else []),
+             "   (a world without pipeline labels, from an older version: written again)" if made_before else
+             "   (then labelled as `occflownet labels --dataroot` it would be)")
+    generate(paths.world, scenes=cfg.scenes, frames=cfg.frames, seed=cfg.seed, preview=True, overwrite=made_before)
 
 
 def _prepare(cfg: QuickstartConfig, paths: QuickstartPaths, announce):
