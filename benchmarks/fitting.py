@@ -55,7 +55,8 @@ def _fog(record: dict, part: str) -> str:
 
 
 def tables(results: Path, ratio: tuple[int, int]) -> str:
-    records = sorted(map(json.loads, results.read_text().splitlines()), key=lambda r: (r["steps"], r["row"], r["seed"]))
+    records = sorted(map(json.loads, results.read_text().splitlines()),
+                     key=lambda r: (r["steps"], r["row"], r["seed"]))
     lines = ["| steps | row | seed | mIoU | geometry IoU | fog (mask_camera) | fog (crossed) | fog (never crossed) | "
              + " | ".join(CLASSES) + " |", "|---|---|---|---|---|---|---|---|" + "---|" * len(CLASSES)]
     for r in records:
@@ -65,7 +66,8 @@ def tables(results: Path, ratio: tuple[int, int]) -> str:
                      + " | ".join(_pct(cam["iou_per_class"].get(c)) for c in CLASSES) + " |")
     by = {(r["row"], r["seed"], r["steps"]): r["metrics"]["occupancy"]["camera_mask"] for r in records}
     a, b = ratio
-    lines += ["", f"| steps | seed | row {a} ÷ row {b} (mIoU) | row {a} ÷ row {b} (geometry IoU) |", "|---|---|---|---|"]
+    lines += ["", f"| steps | seed | row {a} ÷ row {b} (mIoU) | row {a} ÷ row {b} (geometry IoU) |",
+              "|---|---|---|---|"]
     for (row, seed, steps), cam in sorted(by.items(), key=lambda kv: (kv[0][2], kv[0][1])):
         other = by.get((b, seed, steps))
         if row == a and other and other["miou"] and other["geometry_iou"]:

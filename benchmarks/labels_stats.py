@@ -25,7 +25,8 @@ from occflownet.synth.generate import generate, load_truth
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 ROWS = (("voxels in mask_camera", "mask_camera", "{:,.0f}"), ("share of the grid", "mask_camera_share", "{:.1%}"),
         ("mask_camera outside mask_lidar", "mask_camera_outside_lidar", "{:,.0f}"),
-        ("occupied in mask_camera", "occupied_in_camera", "{:,.0f}"), ("free in mask_camera", "free_in_camera", "{:,.0f}"),
+        ("occupied in mask_camera", "occupied_in_camera", "{:,.0f}"),
+        ("free in mask_camera", "free_in_camera", "{:,.0f}"),
         ("free per occupied in mask_camera", "free_per_occupied", "{:.1f}"),
         ("occupied voxels in mask_camera", "occupied_share_in_camera", "{:.0%}"),
         ("columns holding ground", "ground_columns", "{:,.0f}"))

@@ -256,9 +256,11 @@ def _write_lidar_sweeps(fx: Fixture, t: dict, si: int, k: int, scene: str, token
         fname = f"sweeps/{LIDAR}/{scene}__{LIDAR}__{time_us}.pcd.bin"
         _sweep_file(fx, si, k + frac, fx.root / fname)
         t["ego_pose"].append({"token": token("ego", sd), "timestamp": time_us,
-                              "translation": ego_pose(si, time_us)[:3, 3].tolist(), "rotation": _quat(ego_pose(si, time_us))})
+                              "translation": ego_pose(si, time_us)[:3, 3].tolist(),
+                              "rotation": _quat(ego_pose(si, time_us))})
         t["sample_data"].append({"token": sd, "sample_token": tokens[k] if frac <= 0.5 else tokens[k + 1],
-                                 "ego_pose_token": token("ego", sd), "calibrated_sensor_token": token("calib", LIDAR),
+                                 "ego_pose_token": token("ego", sd),
+                                 "calibrated_sensor_token": token("calib", LIDAR),
                                  "timestamp": time_us, "fileformat": "pcd", "is_key_frame": False, "height": 0,
                                  "width": 0, "filename": fname, "prev": "", "next": ""})
 

@@ -97,7 +97,8 @@ def test_prev_next_chains_and_counts(synth_root):
         seq = chain(sds, firsts[0]["token"])
         assert len(seq) == len(recs) and np.all(np.diff([r["timestamp"] for r in seq]) > 0)
         keyframes = [r for r in seq if r["is_key_frame"]]
-        assert [r["sample_token"] for r in keyframes] == [s["token"] for s in chain(samples, t["scene"][0]["first_sample_token"])]
+        in_order = chain(samples, t["scene"][0]["first_sample_token"])
+        assert [r["sample_token"] for r in keyframes] == [s["token"] for s in in_order]
         for r in seq:                                       # a sweep belongs to the keyframe nearest in time
             gap = abs(samples[r["sample_token"]]["timestamp"] - r["timestamp"])
             assert gap == min(abs(smp["timestamp"] - r["timestamp"]) for smp in samples.values())

@@ -76,8 +76,8 @@ def write_frame_root(frame_dir, out, scene: str = "frame-0001", timestamp_us: in
         cam = calib["cameras"].get(ch, {})
         h, w = (decode_rgb(src.read_bytes()).shape[:2]) if camera else (0, 0)
         t["sensor"].append({"token": _token("sensor", ch), "channel": ch, "modality": "camera" if camera else "lidar"})
-        t["calibrated_sensor"].append(_pose(_token(scene, "calib", ch), cam["cam2ego"] if camera else calib["lidar2ego"],
-                                            sensor_token=_token("sensor", ch),
+        sensor2ego = cam["cam2ego"] if camera else calib["lidar2ego"]
+        t["calibrated_sensor"].append(_pose(_token(scene, "calib", ch), sensor2ego, sensor_token=_token("sensor", ch),
                                             camera_intrinsic=cam["intrinsic"] if camera else []))
         t["ego_pose"].append(_pose(_token(scene, "ego", ch), calib["ego2global"], timestamp=timestamp_us))
         t["sample_data"].append({"token": _token(scene, "sd", ch), "sample_token": sample,

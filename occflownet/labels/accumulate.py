@@ -15,7 +15,7 @@ recording vehicle itself (``ego_box``) are dropped.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -42,9 +42,18 @@ class SceneCloud:
     local: np.ndarray           # float64 [D, 3] their box-frame coordinates
     tracks: BoxTracks
     unlabelled_sweep_points: int = 0   # static sweep points that no keyframe point within the radius labelled
+    _static: np.ndarray | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.label)
+
+    def static_rows(self) -> np.ndarray:
+        """int64 [N - D]: the points that stay where they are (computed once)."""
+        if self._static is None:
+            static = np.ones(len(self), bool)
+            static[self.moving] = False
+            self._static = np.flatnonzero(static)
+        return self._static
 
 
 @dataclass(frozen=True)
@@ -145,7 +154,8 @@ def _classify(xyz, label, cand: _Candidates, tracks: BoxTracks, config: LabelCon
     slot = np.full(len(label), -1, np.int64)
     slot[np.flatnonzero(unknown)] = np.arange(int(unknown.sum()))
     at = slot[cand.rows[cand_unknown]]                       # each unknown candidate's row among the unknowns
-    by_box = (d_box < d_static[at]) | (~np.isfinite(d_static[at]) & ~np.isfinite(d_box) & cand.above_floor[cand_unknown])
+    alone = ~np.isfinite(d_static[at]) & ~np.isfinite(d_box)      # no labelled neighbour either way
+    by_box = (d_box < d_static[at]) | (alone & cand.above_floor[cand_unknown])
     moved = np.flatnonzero(cand_unknown)[by_box]
     moves[moved] = True
     label[cand.rows[moved]] = box_class[moved]
@@ -187,23 +197,21 @@ def _inside(points: np.ndarray, ranges) -> np.ndarray:
 def keyframe_cloud(cloud: SceneCloud, ego2global: np.ndarray, time_us: int, sweeps: np.ndarray) -> KeyframeCloud:
     """The returns of the sweeps ``sweeps`` (bool [S]) in the ego frame ``ego2global`` of the keyframe at
     ``time_us``: static points through the poses, box points by their instance's box at that time (annotated
-    or interpolated; points of an instance without a box then are dropped)."""
+    or interpolated; points of an instance without a box then are dropped). Static points come first."""
     to_ego = invert(ego2global)
+    static = cloud.static_rows()
+    if not sweeps.all():
+        static = static[sweeps[cloud.sweep[static]]]
     boxes = cloud.tracks.at(time_us)
     slot = np.full(len(cloud.tracks), -1, np.int64)
     slot[boxes.instance] = np.arange(len(boxes))
-    box_of = np.full(len(cloud), -2, np.int64)                  # -2 static, -1 moving without a box now
-    box_of[cloud.moving] = slot[cloud.instance]
-    keep = np.flatnonzero(sweeps[cloud.sweep] & (box_of != -1))
-    beam_end = transform_points(to_ego, cloud.xyz[keep])
+    box = slot[cloud.instance]                                  # [D] the instance's box now, -1: none
+    keep = np.flatnonzero((box >= 0) & sweeps[cloud.sweep[cloud.moving]])
+    rows = np.concatenate([static, cloud.moving[keep]])
+    beam_end = transform_points(to_ego, cloud.xyz[rows])
     points = beam_end.copy()
-    local_row = np.full(len(cloud), -1, np.int64)
-    local_row[cloud.moving] = np.arange(len(cloud.moving))
-    rows = local_row[keep]
-    moves = rows >= 0
-    if moves.any():
-        T = to_ego @ boxes.box2global[box_of[keep[moves]]]    # box → current ego, [m, 4, 4]
-        points[moves] = np.einsum("mij,mj->mi", T[:, :3, :3], cloud.local[rows[moves]]) + T[:, :3, 3]
+    T = to_ego @ boxes.box2global[box[keep]]                    # box → current ego, [m, 4, 4]
+    points[len(static):] = np.einsum("mij,mj->mi", T[:, :3, :3], cloud.local[keep]) + T[:, :3, 3]
     origin = transform_points(to_ego, cloud.sweep_origin)
-    return KeyframeCloud(points=points, label=cloud.label[keep], beam_origin=origin[cloud.sweep[keep]],
+    return KeyframeCloud(points=points, label=cloud.label[rows], beam_origin=origin[cloud.sweep[rows]],
                          beam_end=beam_end)

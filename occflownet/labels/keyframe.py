@@ -33,7 +33,8 @@ def window_sweeps(cloud: SceneCloud, keyframe_times: np.ndarray, k: int, window:
     return (cloud.sweep_time >= lo) & (cloud.sweep_time <= hi)
 
 
-def label_keyframe(cloud: SceneCloud, sample: SampleRecord, sweeps: np.ndarray, config: LabelConfig) -> KeyframeLabels:
+def label_keyframe(cloud: SceneCloud, sample: SampleRecord, sweeps: np.ndarray,
+                   config: LabelConfig) -> KeyframeLabels:
     """The labels of ``sample`` (one keyframe of the scene of ``cloud``) from the sweeps ``sweeps`` (bool [S])."""
     grid = config.grid
     points = keyframe_cloud(cloud, sample.ego2global, sample.lidar.timestamp, sweeps)
@@ -43,8 +44,8 @@ def label_keyframe(cloud: SceneCloud, sample: SampleRecord, sweeps: np.ndarray, 
     seen = camera_mask(observed, voted.occupied, sample.intrinsics, sample.cam2current_ego(), sample.image_sizes,
                        grid)
     occupied = voted.semantics != FREE
-    stats = {"points": len(points.label), "points_in_grid": int(grid.contains(points.points).sum()),
-             "occupied": int(occupied.sum()), "unlabelled_voxels": int(voted.unlabelled.sum()),
+    stats = {"points": len(points.label), "occupied": int(occupied.sum()),
+             "unlabelled_voxels": int(voted.unlabelled.sum()),
              "mask_lidar": int(observed.sum()), "mask_camera": int(seen.sum()),
              "occupied_in_mask_camera": int((occupied & seen).sum())}
     return KeyframeLabels(voted.semantics, observed.astype(np.uint8), seen.astype(np.uint8), stats)
