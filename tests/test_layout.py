@@ -26,7 +26,7 @@ MAX_LINES = 60
 # Layers in data-flow order; a module's layer is that of its longest matching prefix.
 LAYERS = (
     ("core", ("occflownet", "occflownet.occ3d", "occflownet.geometry", "occflownet.rig", "occflownet.contract",
-              "occflownet.pictures", "occflownet.voxel_walk")),
+              "occflownet.pictures", "occflownet.voxel_walk", "occflownet.viewer")),
     ("synth", ("occflownet.synth",)),
     ("data", ("occflownet.data",)),
     ("model", ("occflownet.model",)),
