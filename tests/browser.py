@@ -95,3 +95,33 @@ def save(path: Path, data: bytes) -> Path:
     path.write_bytes(data)
     return path
 
+
+
+def top_classes(occupancy: np.ndarray, shown: np.ndarray | None = None, free: int = 17, min_columns: int = 40
+                ) -> dict[int, int]:
+    """{class: columns} of the classes on top of at least ``min_columns`` (x, y) columns of the voxels ``shown``
+    (bool [X, Y, Z], default every occupied voxel): what a view from above must show in their colours."""
+    occ = np.where(shown if shown is not None else occupancy != free, occupancy, free)
+    occupied = occ != free
+    top_z = occ.shape[2] - 1 - np.argmax(occupied[:, :, ::-1], axis=2)
+    top = np.take_along_axis(occ, top_z[..., None], axis=2)[..., 0][occupied.any(axis=2)]
+    counts = np.bincount(top, minlength=free + 1)
+    return {int(c): int(n) for c, n in enumerate(counts) if c != free and n >= min_columns}
+
+
+def colour_pixels(rgb: np.ndarray, colour, tolerance: int = 3) -> int:
+    """Pixels of ``rgb`` [H, W, 3] within ``tolerance`` of ``colour`` in every channel."""
+    return int((np.abs(rgb.astype(np.int16) - np.asarray(colour, np.int16)).max(axis=-1) <= tolerance).sum())
+
+
+def check_drawn(rgb: np.ndarray, expected: dict[int, int], colors: np.ndarray, background=(242, 243, 245),
+                min_pixels: int = 20) -> dict[int, int]:
+    """Assert that a screenshot of the 3D canvas is not blank (≥ 10 % of it differs from the background) and that
+    every class of ``expected`` shows in its colour (top faces are drawn in the class colour exactly) on at least
+    ``min_pixels`` pixels → {class: pixels}."""
+    drawn = float((np.abs(rgb.astype(np.int16) - np.asarray(background, np.int16)).max(axis=-1) > 6).mean())
+    assert drawn >= 0.10, f"the canvas is nearly blank: {drawn:.1%} of its pixels differ from the background"
+    found = {c: colour_pixels(rgb, colors[c]) for c in expected}
+    missing = {c: n for c, n in found.items() if n < min_pixels}
+    assert not missing, f"class colours missing from the canvas (class: pixels): {missing}; expected {expected}"
+    return found

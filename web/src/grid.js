@@ -25,63 +25,72 @@ export function classCounts(occ, shape, free, nClasses) {
 // Face shading by direction (+x, -x, +y, -y, +z, -z): tops keep the class colour exactly, sides are darker, so
 // cubes read as cubes without lights (and a screenshot can be checked against the class colours).
 const SHADE = [0.80, 0.80, 0.66, 0.66, 1.0, 0.5];
-// For each direction: the unit step and the four corners of the face, as offsets of the voxel's lower corner.
-const FACES = [
-  [[1, 0, 0], [[1, 0, 0], [1, 1, 0], [1, 1, 1], [1, 0, 1]]],
-  [[-1, 0, 0], [[0, 0, 0], [0, 0, 1], [0, 1, 1], [0, 1, 0]]],
-  [[0, 1, 0], [[0, 1, 0], [0, 1, 1], [1, 1, 1], [1, 1, 0]]],
-  [[0, -1, 0], [[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]]],
-  [[0, 0, 1], [[0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]]],
-  [[0, 0, -1], [[0, 0, 0], [0, 1, 0], [1, 1, 0], [1, 0, 0]]],
-];
 
-// The faces between shown and not-shown voxels (or the grid's border) of one grid: positions (metres), colours
-// (uint8 RGB, shaded by direction) and triangle indices, ready for a BufferGeometry. `shown(v, cls)` decides per
-// voxel; each shown voxel is visited once, each of its six neighbours looked up once.
+// The surface of the shown voxels of one grid: the faces between a shown voxel and a voxel not shown (or the grid's
+// border), with coplanar neighbouring faces of one class merged into rectangles (greedy meshing: the same picture,
+// since faces are flat-coloured, with a fraction of the triangles). `shown(v, cls)` decides per voxel. Returns
+// positions (metres), colours (uint8 RGB, shaded by direction), triangle indices (counter-clockwise seen from
+// outside), and the counts: voxels shown, voxel faces on the surface, rectangles drawn.
 export function surface(occ, shape, lower, voxel, free, colors, shown) {
-  const [X, Y, Z] = shape;
-  const strides = [Y * Z, Z, 1];
-  const vis = new Uint8Array(occ.length);
+  const S = [shape[1] * shape[2], shape[2], 1];
+  const vis = new Uint8Array(occ.length);            // class + 1 of each shown voxel, 0 elsewhere
   let nShown = 0;
   for (let v = 0; v < occ.length; v++) {
     const c = occ[v];
-    if (c !== free && shown(v, c)) { vis[v] = 1; nShown++; }
+    if (c !== free && shown(v, c)) { vis[v] = c + 1; nShown++; }
   }
-  const exposed = (v, i, j, k, d) => {
-    const [dx, dy, dz] = FACES[d][0];
-    const a = i + dx, b = j + dy, c = k + dz;
-    if (a < 0 || b < 0 || c < 0 || a >= X || b >= Y || c >= Z) return true;
-    return !vis[v + dx * strides[0] + dy * strides[1] + dz * strides[2]];
-  };
+  const quads = [];                                   // flat: d, plane, u0, v0, u1, v1, class
   let nFaces = 0;
-  for (let i = 0, v = 0; i < X; i++) for (let j = 0; j < Y; j++) for (let k = 0; k < Z; k++, v++) {
-    if (!vis[v]) continue;
-    for (let d = 0; d < 6; d++) if (exposed(v, i, j, k, d)) nFaces++;
-  }
-  const pos = new Float32Array(nFaces * 12);
-  const col = new Uint8Array(nFaces * 12);
-  const idx = new Uint32Array(nFaces * 6);
-  let f = 0;
-  for (let i = 0, v = 0; i < X; i++) for (let j = 0; j < Y; j++) for (let k = 0; k < Z; k++, v++) {
-    if (!vis[v]) continue;
-    const rgb = colors[occ[v]];
-    for (let d = 0; d < 6; d++) {
-      if (!exposed(v, i, j, k, d)) continue;
-      const corners = FACES[d][1];
-      for (let q = 0; q < 4; q++) {
-        const o = f * 12 + q * 3;
-        pos[o] = lower[0] + (i + corners[q][0]) * voxel;
-        pos[o + 1] = lower[1] + (j + corners[q][1]) * voxel;
-        pos[o + 2] = lower[2] + (k + corners[q][2]) * voxel;
-        for (let ch = 0; ch < 3; ch++) col[o + ch] = Math.round(rgb[ch] * SHADE[d]);
+  for (let a = 0; a < 3; a++) {
+    const u = (a + 1) % 3, w = (a + 2) % 3;           // (a, u, w) cyclic: e_u × e_w = e_a
+    const A = shape[a], U = shape[u], W = shape[w];
+    const mask = new Uint8Array(U * W);
+    for (const sign of [1, -1]) {
+      const d = 2 * a + (sign > 0 ? 0 : 1);
+      for (let s = 0; s < A; s++) {
+        const next = s + sign, edge = next < 0 || next >= A;
+        for (let i = 0; i < U; i++) for (let j = 0; j < W; j++) {
+          const v = s * S[a] + i * S[u] + j * S[w];
+          const c = vis[v];
+          const open = c && (edge || !vis[v + sign * S[a]]);
+          mask[i * W + j] = open ? c : 0;
+          if (open) nFaces++;
+        }
+        for (let i = 0; i < U; i++) for (let j = 0; j < W;) {
+          const c = mask[i * W + j];
+          if (!c) { j++; continue; }
+          let len = 1;
+          while (j + len < W && mask[i * W + j + len] === c) len++;
+          let rows = 1;
+          grow: for (; i + rows < U; rows++) {
+            for (let k = 0; k < len; k++) if (mask[(i + rows) * W + j + k] !== c) break grow;
+          }
+          for (let r = 0; r < rows; r++) mask.fill(0, (i + r) * W + j, (i + r) * W + j + len);
+          quads.push(d, s + (sign > 0 ? 1 : 0), i, j, i + rows, j + len, c - 1);
+          j += len;
+        }
       }
-      const base = f * 4, t = f * 6;
-      idx[t] = base; idx[t + 1] = base + 1; idx[t + 2] = base + 2;
-      idx[t + 3] = base; idx[t + 4] = base + 2; idx[t + 5] = base + 3;
-      f++;
     }
   }
-  return { positions: pos, colors: col, indices: idx, voxels: nShown, faces: nFaces };
+  const n = quads.length / 7;
+  const pos = new Float32Array(n * 12), col = new Uint8Array(n * 12), idx = new Uint32Array(n * 6);
+  for (let q = 0; q < n; q++) {
+    const [d, plane, u0, w0, u1, w1, c] = quads.slice(q * 7, q * 7 + 7);
+    const a = d >> 1, u = (a + 1) % 3, w = (a + 2) % 3;
+    const corners = [[u0, w0], [u1, w0], [u1, w1], [u0, w1]];
+    if (d & 1) corners.reverse();                     // facing -a: the other winding
+    const rgb = colors[c];
+    corners.forEach(([cu, cw], k) => {
+      const o = q * 12 + k * 3;
+      pos[o + a] = lower[a] + plane * voxel;
+      pos[o + u] = lower[u] + cu * voxel;
+      pos[o + w] = lower[w] + cw * voxel;
+      for (let ch = 0; ch < 3; ch++) col[o + ch] = Math.round(rgb[ch] * SHADE[d]);
+    });
+    const b = q * 4, t = q * 6;
+    idx[t] = b; idx[t + 1] = b + 1; idx[t + 2] = b + 2; idx[t + 3] = b; idx[t + 4] = b + 2; idx[t + 5] = b + 3;
+  }
+  return { positions: pos, colors: col, indices: idx, voxels: nShown, faces: nFaces, quads: n };
 }
 
 // The top-down picture of a grid, the rule of occflownet/pictures.py `top_down` (and the server's image/png):

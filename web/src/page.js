@@ -30,6 +30,26 @@ async function errorText(response) {
   return `HTTP ${response.status} ${response.statusText}: ${text.slice(0, 300)}`;
 }
 
+// (w, h) from a JPEG's SOF or a PNG's IHDR header, read from the first 256 kB of the file; null if not found.
+// Cheaper than decoding the image, which would take CPU from the server while it computes.
+export async function imageSize(file) {
+  const b = new Uint8Array(await file.slice(0, 262144).arrayBuffer());
+  const u16 = (i) => (b[i] << 8) | b[i + 1];
+  if (b[0] === 0x89 && b[1] === 0x50 && b.length >= 24) {
+    const u32 = (i) => ((b[i] << 24) | (b[i + 1] << 16) | (b[i + 2] << 8) | b[i + 3]) >>> 0;
+    return [u32(16), u32(20)];
+  }
+  if (b[0] !== 0xff || b[1] !== 0xd8) return null;
+  for (let i = 2; i + 9 < b.length;) {
+    if (b[i] !== 0xff) { i++; continue; }
+    const m = b[i + 1];
+    if (m === 0xd8 || m === 0x01 || (m >= 0xd0 && m <= 0xd7) || m === 0xff) { i += m === 0xff ? 1 : 2; continue; }
+    if (m >= 0xc0 && m <= 0xcf && m !== 0xc4 && m !== 0xc8 && m !== 0xcc) return [u16(i + 7), u16(i + 5)];
+    i += 2 + u16(i + 2);
+  }
+  return null;
+}
+
 class Page {
   constructor() {
     this.files = {};          // camera → File
@@ -112,6 +132,8 @@ class Page {
     $("run").disabled = true;
     $("latency").textContent = "waiting for the server…";
     const t0 = performance.now();
+    // the frusta and thumbnails are prepared while the server computes
+    const cameras = this.cameras();
     try {
       const r = await fetch("/v1/occupancy", { method: "POST", body: form, headers: headers({ Accept: "application/json" }) });
       if (!r.ok) {
@@ -120,11 +142,13 @@ class Page {
         $("latency").textContent = "";
         return this.error(text);
       }
+      const tHeaders = performance.now();
       const body = await r.json();
       const tFetch = performance.now();
-      await this.draw(body);
+      await this.draw(body, cameras);
       const tDrawn = performance.now();
-      this.last = { ok: true, status: r.status, fetchMs: tFetch - t0, drawnMs: tDrawn - t0,
+      this.last = { ok: true, status: r.status, headersMs: tHeaders - t0, fetchMs: tFetch - t0, drawnMs: tDrawn - t0,
+                    viewer: this.viewer.state(),
                     server: body.timings_ms, serverTiming: r.headers.get("Server-Timing"),
                     classCounts: body.class_counts };
       const s = body.timings_ms;
@@ -152,33 +176,28 @@ class Page {
       const c = calib.cameras?.[name];
       if (!c) continue;
       const file = this.files[name];
+      if (this.urls?.[name]) URL.revokeObjectURL(this.urls[name]);
       const image = file ? URL.createObjectURL(file) : null;
-      let size = c.image_size || calib.image_size;
-      if (!size && image) {
-        const img = new Image();
-        img.src = image;
-        await img.decode();
-        size = [img.naturalWidth, img.naturalHeight];
-      }
+      (this.urls ||= {})[name] = image;
+      // intrinsics are for the camera's image_size, the top-level one, or the image as sent (docs/contracts.md)
+      const size = c.image_size || calib.image_size || (file ? await imageSize(file) : null);
       if (size) out.push({ name, intrinsic: c.intrinsic, cam2ego: c.cam2ego, image_size: size, image });
     }
     return out;
   }
 
-  async draw(body) {
+  async draw(body, cameras) {
     const md = this.metadata;
     const data = {
       title: "answer", shape: body.shape, lower: body.grid.lower, voxel_size: body.grid.voxel_size,
       free_index: body.free_index, classes: body.classes, colors: md.class_colors,
       grids: [{ name: "answer", occupancy: { data: body.occupancy_base64, encoding: "base64" } }],
-      cameras: await this.cameras(),
+      cameras: await cameras,
     };
-    if (this.viewer) this.viewer.dispose();
     const box = $("view3d");
-    box.replaceChildren();
-    delete box.dataset.drawn;
     const drawn = new Promise((resolve) => box.addEventListener("occ-drawn", resolve, { once: true }));
-    this.viewer = await Viewer.create(box, data);
+    if (this.viewer) await this.viewer.show(data);
+    else this.viewer = await Viewer.create(box, data);
     const occ = this.viewer.panes[0].occ;
     const td = topDown(occ, body.shape, md.class_colors, body.free_index, 2);
     const canvas = $("top-down");

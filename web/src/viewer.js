@@ -90,14 +90,38 @@ class Pane {
     g.setIndex(new BufferAttribute(s.indices, 1));
     this.mesh.geometry.dispose();
     this.mesh.geometry = g;
-    this.stats = { voxels: s.voxels, faces: s.faces };
+    this.stats = { voxels: s.voxels, faces: s.faces, quads: s.quads };
     return this.stats;
   }
 }
 
 export class Viewer {
-  // Long-lived state of one viewer in `container`; use `await Viewer.create(container, data)`.
+  // One viewer in `container`: `await Viewer.create(container, data)`; `await viewer.show(data)` replaces what it
+  // shows and keeps the WebGL context, its compiled shaders and the camera pose (the server page, result after
+  // result).
   static async create(container, data, options = {}) {
+    const viewer = new Viewer(container, options);
+    await viewer.show(data);
+    return viewer;
+  }
+
+  constructor(container, options = {}) {
+    this.container = container;
+    this.renderer = new WebGLRenderer({ antialias: options.antialias ?? false,
+                                        preserveDrawingBuffer: !!options.preserveDrawingBuffer });
+    this.renderer.outputColorSpace = LinearSRGBColorSpace;  // colours are drawn as given (sRGB bytes)
+    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
+    this.renderer.setScissorTest(true);
+    this.camera = new PerspectiveCamera(45, 1, 0.1, 500);
+    this.camera.up.set(0, 0, 1);
+    this.camera.position.set(-38, -22, 38);
+    this.controls = new OrbitControls(this.camera, this.renderer.domElement);
+    this.controls.target.set(6, 0, 0);
+    this.controls.addEventListener("change", () => this.requestRender());
+    this.resizer = new ResizeObserver(() => this.resize());
+  }
+
+  async show(data) {
     const tStart = performance.now();
     const occs = await Promise.all(data.grids.map((g) => decodeBytes(g.occupancy.data, g.occupancy.encoding)));
     const masks = await Promise.all(data.grids.map((g) => g.mask_camera
@@ -106,42 +130,31 @@ export class Viewer {
     occs.forEach((o, i) => {
       if (o.length !== n) throw new Error(`grid ${data.grids[i].name}: ${o.length} bytes, expected ${n}`);
     });
+    const tDecoded = performance.now();
     // a labels file's mask_camera applies to every pane: what eval scores
     const labelMask = masks.find((m) => m) || null;
-    const tDecoded = performance.now();
-    const viewer = new Viewer(container, data, occs, masks.map((m) => m || labelMask), options);
-    viewer.timings = { start: tStart, decoded: tDecoded, built: performance.now() };
-    return viewer;
-  }
-
-  constructor(container, data, occs, masks, options) {
     this.data = data;
-    this.container = container;
+    this.hasMask = !!labelMask;
     this.classOn = data.classes.map((_, c) => c !== data.free_index);
-    this.showOutside = !masks.some((m) => m);
+    this.showOutside = !this.hasMask;
     this.layout = "all";
+    for (const p of this.panes || []) p.mesh.geometry.dispose();
     const bounds = boxLines(data.lower, data.lower.map((l, a) => l + data.shape[a] * data.voxel_size), 0xb0b4ba);
     const shared = { bounds, cameras: data.cameras || [] };
-    this.panes = data.grids.map((g, i) => new Pane(g, occs[i], masks[i], data, shared));
-    this.hasMask = masks.some((m) => m);
-    this.buildDom(options);
-    this.renderer = new WebGLRenderer({ antialias: options.antialias ?? false, preserveDrawingBuffer: !!options.preserveDrawingBuffer });
-    this.renderer.outputColorSpace = LinearSRGBColorSpace;  // colours are drawn as given (sRGB bytes)
-    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
-    this.renderer.setScissorTest(true);
+    this.panes = data.grids.map((g, i) => new Pane(g, occs[i], masks[i] || labelMask, data, shared));
+    this.buildDom();
     this.canvasBox.append(this.renderer.domElement);
-    this.camera = new PerspectiveCamera(45, 1, 0.1, 500);
-    this.camera.up.set(0, 0, 1);
-    this.camera.position.set(-38, -22, 38);
-    this.controls = new OrbitControls(this.camera, this.renderer.domElement);
-    this.controls.target.set(6, 0, 0);
-    this.controls.addEventListener("change", () => this.requestRender());
-    new ResizeObserver(() => this.resize()).observe(this.canvasBox);
+    this.resizer.disconnect();
+    this.resizer.observe(this.canvasBox);
+    this.frames = 0;
+    delete this.container.dataset.drawn;
     this.rebuild();
     this.resize();
+    this.timings = { start: tStart, decoded: tDecoded, built: performance.now() };
+    this.render();                                  // the first frame at once, not at the next animation frame
   }
 
-  buildDom(options) {
+  buildDom() {
     const d = this.data;
     this.canvasBox = el("div", { class: "occ-canvas" });
     this.labels = el("div", { class: "occ-pane-labels" });
@@ -181,7 +194,7 @@ export class Viewer {
       el("div", { class: "occ-hint" }, "drag: orbit · wheel: zoom · right-drag: pan"));
     const main = el("div", { class: "occ-main" }, this.canvasBox, this.labels);
     const thumbs = this.thumbnails();
-    this.container.append(el("div", { class: "occ-viewer" }, main, side), ...(thumbs ? [thumbs] : []));
+    this.container.replaceChildren(el("div", { class: "occ-viewer" }, main, side), ...(thumbs ? [thumbs] : []));
   }
 
   thumbnails() {
@@ -195,7 +208,7 @@ export class Viewer {
       const i = this.data.cameras.findIndex((c) => c.name === name);
       const fig = el("figure", {
         onmouseenter: () => this.highlight(i, true), onmouseleave: () => this.highlight(i, false),
-      }, el("img", { src: byName[name].image, alt: name }), el("figcaption", {}, name));
+      }, el("img", { src: byName[name].image, alt: name, decoding: "async" }), el("figcaption", {}, name));
       box.append(fig);
     }
     return box;
@@ -217,7 +230,7 @@ export class Viewer {
     const stats = this.panes.map((p) => p.rebuild(this.data, this.classOn, this.showOutside));
     this.lastBuildMs = performance.now() - t0;
     this.statsLine.textContent = this.panes.map((p, i) =>
-      `${p.name}: ${stats[i].voxels} voxels shown, ${stats[i].faces} faces`).join(" · ");
+      `${p.name}: ${stats[i].voxels} voxels shown, ${stats[i].faces} faces on the surface in ${stats[i].quads} rectangles`).join(" · ");
     this.requestRender();
   }
 
@@ -254,7 +267,7 @@ export class Viewer {
       this.renderer.setScissor(i * pw, 0, pw, h);
       this.renderer.render(p.scene, this.camera);
     });
-    this.frames = (this.frames || 0) + 1;
+    this.frames++;
     if (this.frames === 1) {
       // the first frame is finished once its pixels can be read back
       const gl = this.renderer.getContext();

@@ -1,0 +1,170 @@
+"""The server page (``GET /ui``) in a real browser against a real ``occflownet serve`` process serving a briefly
+trained model: upload the real nuScenes frame (six JPEGs and calib.json), wait for the answer, and check what is
+drawn — the top-down canvas equals, pixel for pixel, the server's own ``image/png`` answer for the same request, the
+3D canvas shows the class colours of the grid — and the latency the page reports: the page's round trip (click to
+drawn result) may add at most 150 ms to the API's own round trip for the same request (measured here, interleaved,
+median of three each, printed). Five images show the API's own 422 message, and the server keeps serving. The page
+fetches nothing but this server.
+
+Screenshots: ``<tmp>/screenshots/`` (and docs/ with OCCFLOWNET_UPDATE_DOCS=1)."""
+from __future__ import annotations
+
+import io
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from browser import browser, check_drawn, data_url_rgb, png_rgb, setup_browser, top_classes, wait_for
+from exported_models import FRAME, exported_trained_tiny, frame_available
+from selenium.webdriver.common.by import By
+from serve_fixtures import free_port, stop_server
+
+from occflownet.occ3d import CAMERAS, CLASS_COLORS
+from occflownet.serve.client import wait_ready
+
+REPO = Path(__file__).resolve().parents[1]
+OVERHEAD_TARGET_MS = 150.0
+pytestmark = pytest.mark.skipif(not frame_available(), reason=f"real frame not found at {FRAME}")
+
+
+@pytest.fixture(scope="module")
+def server():
+    model = exported_trained_tiny()[0]
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "occflownet", "serve", "--model", str(model), "--port", str(port),
+                             "--no-access-log", "--log-level", "warning"], cwd=REPO)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        wait_ready(base, 120, proc=proc)
+        yield base
+    finally:
+        stop_server(proc)
+
+
+@pytest.fixture(scope="module")
+def page(server):
+    setup_browser()
+    with browser() as d:
+        d.get(f"{server}/ui")
+        wait_for(d, "window.occPage && window.occPage.metadata")
+        yield d
+
+
+def keep(tmp_path: Path, name: str, png: bytes) -> Path:
+    path = tmp_path / "screenshots" / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(png)
+    if os.environ.get("OCCFLOWNET_UPDATE_DOCS") == "1":
+        shutil.copyfile(path, REPO / "docs" / name)
+    return path
+
+
+def frame_files(cameras=CAMERAS) -> dict:
+    files = {c: (f"{c}.jpg", (FRAME / f"{c}.jpg").read_bytes(), "image/jpeg") for c in cameras}
+    files["calibration"] = ("calib.json", (FRAME / "calib.json").read_bytes(), "application/json")
+    return files
+
+
+def direct(server: str, accept: str = "application/json", cameras=CAMERAS) -> tuple[httpx.Response, float]:
+    t0 = time.perf_counter()
+    r = httpx.post(f"{server}/v1/occupancy", files=frame_files(cameras), headers={"Accept": accept}, timeout=60)
+    if accept == "application/json" and r.status_code == 200:
+        r.json()
+    return r, (time.perf_counter() - t0) * 1e3
+
+
+def send(page, cameras=CAMERAS, calibration: bool = True) -> dict:
+    """Choose the images (and calib.json) in the page's file inputs, press the button, wait for the outcome."""
+    page.execute_script("window.occPage.last = null; document.getElementById('images').value = '';")
+    page.find_element(By.ID, "images").send_keys("\n".join(str(FRAME / f"{c}.jpg") for c in cameras))
+    if calibration:
+        page.find_element(By.ID, "calibration").send_keys(str(FRAME / "calib.json"))
+    page.find_element(By.ID, "run").click()
+    return wait_for(page, "window.occPage.last", timeout=120)
+
+
+def test_real_frame_round_trip_draws_the_answer_and_reports_latency(server, page, tmp_path):
+    first = send(page)                                                 # warm: the first canvas, the first upload
+    assert first["ok"], first
+    direct_ms, page_ms = [], []
+    for _ in range(3):
+        direct_ms.append(direct(server)[1])
+        last = send(page)
+        assert last["ok"] and last["status"] == 200, last
+        page_ms.append(last["drawnMs"])
+        t = last["viewer"]["timings"]
+        print(f"\n  page: headers {last['headersMs']:.0f} ms, body {last['fetchMs']:.0f} ms, drawn {last['drawnMs']:.0f}"
+              f" ms (show: decode {t['decoded'] - t['start']:.0f} ms, build {t['built'] - t['decoded']:.0f} ms, first frame "
+              f"{last['viewer']['firstFrameMs'] - t['built']:.0f} ms; {last['viewer']['panes'][0]['faces']} faces)")
+    overhead = statistics.median(page_ms) - statistics.median(direct_ms)
+    print(f"\nreal frame: API round trip (httpx) p50 {statistics.median(direct_ms):.0f} ms {[round(x) for x in direct_ms]}"
+          f"; page click → drawn p50 {statistics.median(page_ms):.0f} ms {[round(x) for x in page_ms]}"
+          f"; the page adds {overhead:.0f} ms (target ≤ {OVERHEAD_TARGET_MS:.0f}); server total "
+          f"{last['server']['total']:.0f} ms")
+    assert overhead <= OVERHEAD_TARGET_MS
+
+    # what the page reports is what the server measured
+    text = page.find_element(By.ID, "latency").text
+    assert f"server: {last['server']['total']:.0f} ms" in text and "inference" in text
+    assert last["serverTiming"].startswith("queue;dur=")
+    # the top-down canvas is the server's own image/png answer for the same request, pixel for pixel
+    png, _ = direct(server, "image/png")
+    canvas = data_url_rgb(page.execute_script("return document.getElementById('top-down').toDataURL('image/png')"))
+    np.testing.assert_array_equal(canvas, png_rgb(png.content))
+    # the 3D view shows the grid's classes in their colours
+    npy, _ = direct(server, "application/x-npy")
+    grid = np.load(io.BytesIO(npy.content))
+    expected = top_classes(grid, min_columns=25)
+    assert expected and sum(last["classCounts"].values()) - last["classCounts"]["free"] == int((grid != 17).sum())
+    check_drawn(png_rgb(page.find_element(By.CSS_SELECTOR, "#view3d .occ-canvas canvas").screenshot_as_png),
+                expected, CLASS_COLORS)
+    origins = page.execute_script("return performance.getEntriesByType('resource').map(e => new URL(e.name).origin)")
+    assert set(origins) == {server}, origins                           # nothing but this server
+    keep(tmp_path, "serve_page.png", page.get_screenshot_as_png())
+
+
+def test_five_images_show_the_api_error_and_the_server_keeps_serving(server, page, tmp_path):
+    five = CAMERAS[:5]
+    r, _ = direct(server, cameras=five)
+    assert r.status_code == 422
+    err = r.json()["error"]
+    last = send(page, five)
+    assert not last["ok"] and last["status"] == 422
+    shown = page.find_element(By.ID, "error").text
+    assert shown == f"HTTP 422 {err['code']}: {err['message']}", shown
+    keep(tmp_path, "serve_page_error.png", page.get_screenshot_as_png())
+    # the server keeps serving, the page too
+    assert direct(server)[0].status_code == 200
+    again = send(page)
+    assert again["ok"] and not page.find_element(By.ID, "error").is_displayed()
+
+
+def test_page_shows_the_api_key_error_then_works_with_the_key(tmp_path):
+    """With OCCFLOWNET_API_KEY the page loads, says the API needs the key (the API's 401 message), and works once
+    the key is typed in."""
+    model = exported_trained_tiny()[0]
+    port = free_port()
+    env = {**os.environ, "OCCFLOWNET_API_KEY": "page-test-key"}
+    proc = subprocess.Popen([sys.executable, "-m", "occflownet", "serve", "--model", str(model), "--port", str(port),
+                             "--no-access-log", "--log-level", "warning"], cwd=REPO, env=env)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        wait_ready(base, 120, proc=proc)
+        setup_browser()
+        with browser() as d:
+            d.get(f"{base}/ui")
+            message = wait_for(d, "document.getElementById('error').textContent")
+            assert message.startswith("HTTP 401 unauthorized: missing or wrong API key"), message
+            d.find_element(By.ID, "api-key").send_keys("page-test-key")
+            d.execute_script("document.getElementById('api-key').dispatchEvent(new Event('change'))")
+            wait_for(d, "window.occPage.metadata")
+            assert send(d)["ok"]
+    finally:
+        stop_server(proc)
