@@ -11,7 +11,7 @@ import {
   LinearSRGBColorSpace, Mesh, MeshBasicMaterial, PerspectiveCamera, Scene, WebGLRenderer,
 } from "three";
 import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
-import { classCounts, decodeBytes, surface } from "./grid.js";
+import { classCounts, decodeBytes, facingRanges, surface } from "./grid.js";
 
 const BACKGROUND = 0xf2f3f5;
 const FRUSTUM_DEPTH = 4.0;                      // metres drawn along each camera's view
@@ -74,24 +74,33 @@ class Pane {
     this.mask = mask;
     this.scene = new Scene();
     this.scene.background = new Color(BACKGROUND);
-    this.mesh = new Mesh(new BufferGeometry(), new MeshBasicMaterial({ vertexColors: true }));
+    // one material in an array: the geometry's groups select the rectangles facing the camera (`facing`)
+    this.mesh = new Mesh(new BufferGeometry(), [new MeshBasicMaterial({ vertexColors: true })]);
     this.scene.add(this.mesh, egoVehicle(), shared.bounds.clone());
     this.frusta = shared.cameras.map((cam) => { const f = frustumLines(cam); this.scene.add(f); return f; });
     this.counts = classCounts(occ, data.shape, data.free_index, data.classes.length);
   }
 
   rebuild(data, classOn, showOutside) {
-    const mask = this.mask;
-    const shown = (v, c) => classOn[c] && (showOutside || !mask || mask[v] !== 0);
-    const s = surface(this.occ, data.shape, data.lower, data.voxel_size, data.free_index, data.colors, shown);
+    const s = surface(this.occ, data.shape, data.lower, data.voxel_size, data.free_index, data.colors, classOn,
+                      showOutside ? null : this.mask);
     const g = new BufferGeometry();
     g.setAttribute("position", new BufferAttribute(s.positions, 3));
     g.setAttribute("color", new BufferAttribute(s.colors, 3, true));
     g.setIndex(new BufferAttribute(s.indices, 1));
     this.mesh.geometry.dispose();
     this.mesh.geometry = g;
+    this.directions = s.directions;
     this.stats = { voxels: s.voxels, faces: s.faces, quads: s.quads };
     return this.stats;
+  }
+
+  facing(eye) {
+    const g = this.mesh.geometry;
+    g.clearGroups();
+    let n = 0;
+    for (const [start, count] of facingRanges(this.directions, eye)) { g.addGroup(start, count, 0); n += count; }
+    return n / 6;
   }
 }
 
@@ -265,6 +274,7 @@ export class Viewer {
     panes.forEach((p, i) => {
       this.renderer.setViewport(i * pw, 0, pw, h);
       this.renderer.setScissor(i * pw, 0, pw, h);
+      this.drawnQuads = p.facing(this.camera.position.toArray());
       this.renderer.render(p.scene, this.camera);
     });
     this.frames++;
@@ -313,7 +323,7 @@ export class Viewer {
     return {
       drawn: this.container.dataset.drawn === "1", firstFrameMs: this.firstFrameMs, buildMs: this.lastBuildMs,
       timings: this.timings,
-      panes: this.panes.map((p) => ({ name: p.name, ...p.stats })), layout: this.layout,
+      panes: this.panes.map((p) => ({ name: p.name, ...p.stats })), layout: this.layout, drawnQuads: this.drawnQuads,
     };
   }
 }
