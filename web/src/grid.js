@@ -4,8 +4,10 @@
 // (i, j, k) at flat index (i * Y + j) * Z + k, spanning lower + index * voxel .. lower + (index + 1) * voxel
 // metres; the value is a class index, `free` for free space (docs/contracts.md).
 
-// base64 → Uint8Array; "zlib-base64" data is inflated with the browser's DecompressionStream (no library).
+// base64 → Uint8Array; "zlib-base64" data is inflated with the browser's DecompressionStream (no library);
+// "bytes": already a Uint8Array.
 export async function decodeBytes(text, encoding) {
+  if (encoding === "bytes") return text;
   const bin = atob(text);
   const raw = new Uint8Array(bin.length);
   for (let i = 0; i < bin.length; i++) raw[i] = bin.charCodeAt(i);

@@ -2,7 +2,7 @@
 // POST /v1/occupancy exactly as any client would, then show the top-down picture and the 3D view of the answer
 // with the latencies. Errors are the API's own {"error": {"code", "message"}}, shown as they come. Everything
 // is fetched from this server only (the page's Content-Security-Policy says so too).
-import { topDown } from "./grid.js";
+import { decodeBytes, topDown } from "./grid.js";
 import { Viewer } from "./viewer.js";
 
 const $ = (id) => document.getElementById(id);
@@ -120,6 +120,7 @@ class Page {
     const box = $("error");
     box.hidden = !text;
     box.textContent = text || "";
+    if (text) $("result").hidden = true;            // never an earlier answer under a new error
   }
 
   async run() {
@@ -145,17 +146,24 @@ class Page {
       const tHeaders = performance.now();
       const body = await r.json();
       const tFetch = performance.now();
-      await this.draw(body, cameras);
+      // the answer on screen first (top-down picture, latencies), then the 3D view
+      const occ = await decodeBytes(body.occupancy_base64, "base64");
+      $("result").hidden = false;
+      this.drawTopDown(occ, body);
+      const s = body.timings_ms;
+      const line = `server: ${s.total.toFixed(0)} ms (queue ${s.queue.toFixed(0)}, decode ${s.decode.toFixed(0)}, ` +
+        `inference ${s.inference.toFixed(0)}, encode ${s.encode.toFixed(1)}) · round trip in the browser: ` +
+        `${(tFetch - t0).toFixed(0)} ms to the answer`;
+      $("latency").textContent = line + ", drawing it in 3D…";
+      const tShown = performance.now();
+      await this.draw3d(occ, body, cameras);
       const tDrawn = performance.now();
-      this.last = { ok: true, status: r.status, headersMs: tHeaders - t0, fetchMs: tFetch - t0, drawnMs: tDrawn - t0,
-                    viewer: this.viewer.state(),
+      $("latency").textContent = line + `, ${(tShown - t0).toFixed(0)} ms to the top-down picture, ` +
+        `${(tDrawn - t0).toFixed(0)} ms to the 3D view`;
+      this.last = { ok: true, status: r.status, headersMs: tHeaders - t0, fetchMs: tFetch - t0,
+                    shownMs: tShown - t0, drawnMs: tDrawn - t0, viewer: this.viewer.state(),
                     server: body.timings_ms, serverTiming: r.headers.get("Server-Timing"),
                     classCounts: body.class_counts };
-      const s = body.timings_ms;
-      $("latency").textContent = `server: ${s.total.toFixed(0)} ms (queue ${s.queue.toFixed(0)}, decode ` +
-        `${s.decode.toFixed(0)}, inference ${s.inference.toFixed(0)}, encode ${s.encode.toFixed(1)}) · round trip in ` +
-        `the browser: ${this.last.fetchMs.toFixed(0)} ms to the answer, ${this.last.drawnMs.toFixed(0)} ms to the ` +
-        "drawn result";
     } catch (e) {
       this.last = { ok: false, status: 0, message: String(e) };
       $("latency").textContent = "";
@@ -186,24 +194,25 @@ class Page {
     return out;
   }
 
-  async draw(body, cameras) {
-    const md = this.metadata;
+  drawTopDown(occ, body) {
+    const td = topDown(occ, body.shape, this.metadata.class_colors, body.free_index, 2);
+    const canvas = $("top-down");
+    canvas.width = td.width;
+    canvas.height = td.height;
+    canvas.getContext("2d").putImageData(new ImageData(td.rgba, td.width, td.height), 0, 0);
+  }
+
+  async draw3d(occ, body, cameras) {
     const data = {
       title: "answer", shape: body.shape, lower: body.grid.lower, voxel_size: body.grid.voxel_size,
-      free_index: body.free_index, classes: body.classes, colors: md.class_colors,
-      grids: [{ name: "answer", occupancy: { data: body.occupancy_base64, encoding: "base64" } }],
+      free_index: body.free_index, classes: body.classes, colors: this.metadata.class_colors,
+      grids: [{ name: "answer", occupancy: { data: occ, encoding: "bytes" } }],
       cameras: await cameras,
     };
     const box = $("view3d");
     const drawn = new Promise((resolve) => box.addEventListener("occ-drawn", resolve, { once: true }));
     if (this.viewer) await this.viewer.show(data);
     else this.viewer = await Viewer.create(box, data);
-    const occ = this.viewer.panes[0].occ;
-    const td = topDown(occ, body.shape, md.class_colors, body.free_index, 2);
-    const canvas = $("top-down");
-    canvas.width = td.width;
-    canvas.height = td.height;
-    canvas.getContext("2d").putImageData(new ImageData(td.rgba, td.width, td.height), 0, 0);
     await drawn;
   }
 }

@@ -18,6 +18,7 @@ export const CSS = `
 .occ-thumbs figure { margin: 0; cursor: crosshair; }
 .occ-thumbs img { width: 100%; display: block; border: 1px solid #ccc; }
 .occ-thumbs figcaption { font: 11px system-ui, sans-serif; color: #444; }
+.occ-page [hidden] { display: none !important; }
 body.occ-body { margin: 12px 16px; font: 14px/1.4 system-ui, sans-serif; color: #222; background: #fff; }
 .occ-page h1 { font-size: 20px; margin: 0 0 4px; }
 .occ-form { display: grid; grid-template-columns: max-content 1fr; gap: 6px 12px; align-items: center; margin: 10px 0; }
