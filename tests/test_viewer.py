@@ -186,3 +186,8 @@ def test_with_an_api_key_the_page_loads_but_the_api_still_needs_the_key(fake_mod
         assert c.get("/v1/metadata").status_code == 401
         assert c.post("/v1/occupancy").status_code == 401
         assert c.get("/v1/metadata", headers={"Authorization": "Bearer s3cret"}).status_code == 200
+
+
+def test_eval_html_needs_save_predictions(tmp_path, capsys):
+    assert main(["eval", "--model", str(tmp_path / "m.onnx"), "--dataroot", str(tmp_path), "--html", "1"]) == 2
+    assert "--html needs --save-predictions" in capsys.readouterr().err

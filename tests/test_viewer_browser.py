@@ -38,12 +38,12 @@ def driver():
         yield d
 
 
-def keep(tmp_path: Path, name: str, png: bytes) -> Path:
-    """Save a screenshot under the test's folder (and in docs/ with OCCFLOWNET_UPDATE_DOCS=1)."""
+def keep(tmp_path: Path, name: str, png: bytes, docs: bool = True) -> Path:
+    """Save a screenshot under the test's folder (and, if ``docs``, in docs/ with OCCFLOWNET_UPDATE_DOCS=1)."""
     path = tmp_path / "screenshots" / name
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(png)
-    if os.environ.get("OCCFLOWNET_UPDATE_DOCS") == "1":
+    if docs and os.environ.get("OCCFLOWNET_UPDATE_DOCS") == "1":
         shutil.copyfile(path, REPO / "docs" / name)
     return path
 
@@ -105,7 +105,7 @@ def test_trained_model_grid_of_the_real_frame_draws_with_thumbnails(driver, tmp_
     thumbs = driver.execute_script("return [...document.querySelectorAll('.occ-thumbs img')]"
                                    ".map(i => [i.alt, i.naturalWidth])")
     assert sorted(n for n, _ in thumbs) == sorted(CAMERAS) and all(w == 480 for _, w in thumbs)
-    keep(tmp_path, "viewer_prediction_real_frame.png", driver.get_screenshot_as_png())
+    keep(tmp_path, "viewer_prediction_real_frame.png", driver.get_screenshot_as_png(), docs=False)
 
 
 def test_eval_html_shows_ground_truth_beside_prediction(driver, tmp_path):
