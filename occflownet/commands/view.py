@@ -33,8 +33,8 @@ def run(args) -> int:
         calib = contract.load_calibration(args.calib) if args.calib else None
         images = {cam: p.read_bytes() for cam, p in find_camera_images(args.images).items()} if args.images else None
         title = args.title or Path(args.grid).name
-        subtitle = " · ".join(f"{g.name}: {Path(f).name}" for g, f in zip(grids, [*([args.gt] if args.gt else []),
-                                                                                  args.grid]))
+        files = [args.gt, args.grid] if args.gt else [args.grid]               # in the order of `grids`
+        subtitle = " · ".join(f"{g.name}: {Path(f).name}" for g, f in zip(grids, files))
         out = viewer.write_viewer(args.out, grids, calib, images, title=title, subtitle=subtitle)
     except (FileNotFoundError, ValueError, OSError) as exc:
         print(f"occflownet view: {exc}", file=sys.stderr)

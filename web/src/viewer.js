@@ -266,7 +266,6 @@ export class Viewer {
   }
 
   render() {
-    if (this.disposed) return;
     const w = this.renderer.domElement.width / this.renderer.getPixelRatio();
     const h = this.renderer.domElement.height / this.renderer.getPixelRatio();
     const panes = this.visiblePanes();
@@ -309,14 +308,6 @@ export class Viewer {
       };
       requestAnimationFrame(step);
     });
-  }
-
-  dispose() {
-    this.disposed = true;
-    for (const p of this.panes) p.mesh.geometry.dispose();
-    this.controls.dispose();
-    this.renderer.dispose();
-    this.renderer.forceContextLoss();
   }
 
   state() {
