@@ -8,6 +8,7 @@ it is sent to.
 from __future__ import annotations
 
 import base64
+import os
 import shutil
 import subprocess
 import tempfile
@@ -90,9 +91,14 @@ def data_url_rgb(url: str) -> np.ndarray:
     return png_rgb(base64.b64decode(url.split(",", 1)[1]))
 
 
-def save(path: Path, data: bytes) -> Path:
+def keep_screenshot(tmp_path: Path, name: str, png: bytes, docs: bool = True) -> Path:
+    """Save a screenshot as ``<tmp_path>/screenshots/<name>`` (the test's artifacts) and, if ``docs`` and
+    OCCFLOWNET_UPDATE_DOCS=1, as ``docs/<name>`` (the pictures the README and docs/serve.md show)."""
+    path = tmp_path / "screenshots" / name
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(data)
+    path.write_bytes(png)
+    if docs and os.environ.get("OCCFLOWNET_UPDATE_DOCS") == "1":
+        shutil.copyfile(path, REPO / "docs" / name)
     return path
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import io
 import os
-import shutil
 import statistics
 import subprocess
 import sys
@@ -22,7 +21,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from browser import browser, check_drawn, data_url_rgb, png_rgb, setup_browser, top_classes, wait_for
+from browser import (browser, check_drawn, data_url_rgb, keep_screenshot, png_rgb, setup_browser, top_classes,
+                     wait_for)
 from exported_models import FRAME, exported_trained_tiny, frame_available
 from selenium.webdriver.common.by import By
 from serve_fixtures import free_port, stop_server
@@ -60,15 +60,6 @@ def page(server):
         d.get(f"{server}/ui")
         wait_for(d, "window.occPage && window.occPage.metadata")
         yield d
-
-
-def keep(tmp_path: Path, name: str, png: bytes) -> Path:
-    path = tmp_path / "screenshots" / name
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(png)
-    if os.environ.get("OCCFLOWNET_UPDATE_DOCS") == "1":
-        shutil.copyfile(path, REPO / "docs" / name)
-    return path
 
 
 def frame_files(cameras=CAMERAS) -> dict:
@@ -154,7 +145,7 @@ def test_real_frame_round_trip_draws_the_answer_and_reports_latency(server, page
                 expected, CLASS_COLORS)
     origins = page.execute_script("return performance.getEntriesByType('resource').map(e => new URL(e.name).origin)")
     assert set(origins) == {server}, origins                           # nothing but this server
-    keep(tmp_path, "serve_page.png", page.get_screenshot_as_png())
+    keep_screenshot(tmp_path, "serve_page.png", page.get_screenshot_as_png())
 
 
 def test_five_images_show_the_api_error_and_the_server_keeps_serving(server, page, tmp_path):
@@ -167,7 +158,7 @@ def test_five_images_show_the_api_error_and_the_server_keeps_serving(server, pag
     shown = page.find_element(By.ID, "error").text
     assert shown == f"HTTP 422 {err['code']}: {err['message']}", shown
     assert not page.find_element(By.ID, "result").is_displayed()       # no earlier answer under the error
-    keep(tmp_path, "serve_page_error.png", page.get_screenshot_as_png())
+    keep_screenshot(tmp_path, "serve_page_error.png", page.get_screenshot_as_png())
     # the server keeps serving, the page too
     assert direct(server)[0].status_code == 200
     again = send(page)

@@ -9,14 +9,13 @@ Screenshots stay under the test's temporary folder (``<tmp>/screenshots/``); wit
 also copied to docs/ (the pictures the README and docs/serve.md show)."""
 from __future__ import annotations
 
-import os
-import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from browser import browser, check_drawn, colour_pixels, png_rgb, setup_browser, top_classes, wait_for
+from browser import (browser, check_drawn, colour_pixels, keep_screenshot, png_rgb, setup_browser, top_classes,
+                     wait_for)
 from exported_models import FRAME, exported_trained_tiny, frame_available, trained_tiny_checkpoint, workdir
 from selenium.webdriver.common.by import By
 
@@ -36,16 +35,6 @@ def driver():
     setup_browser()
     with browser() as d:
         yield d
-
-
-def keep(tmp_path: Path, name: str, png: bytes, docs: bool = True) -> Path:
-    """Save a screenshot under the test's folder (and, if ``docs``, in docs/ with OCCFLOWNET_UPDATE_DOCS=1)."""
-    path = tmp_path / "screenshots" / name
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(png)
-    if docs and os.environ.get("OCCFLOWNET_UPDATE_DOCS") == "1":
-        shutil.copyfile(path, REPO / "docs" / name)
-    return path
 
 
 def open_viewer(driver, path: Path) -> tuple[dict, float]:
@@ -78,7 +67,7 @@ def test_real_occ3d_labels_draw_with_their_class_colours_and_toggles(driver, tmp
           f"after navigation start, {state['panes'][0]['faces']} faces")
     assert state["panes"][0]["voxels"] == int(inside.sum())            # outside mask_camera hidden at first
     found = check_drawn(canvas_rgb(driver), top_classes(gt.occupancy, inside), CLASS_COLORS)
-    keep(tmp_path, "viewer_occ3d_labels.png", driver.get_screenshot_as_png())
+    keep_screenshot(tmp_path, "viewer_occ3d_labels.png", driver.get_screenshot_as_png())
     # the mask toggle shows every labelled voxel, a class toggle hides one class and its colour
     driver.find_element(By.ID, "occ-outside-mask").click()
     assert shown_count(driver) == int((gt.occupancy != FREE).sum())
@@ -105,7 +94,7 @@ def test_trained_model_grid_of_the_real_frame_draws_with_thumbnails(driver, tmp_
     thumbs = driver.execute_script("return [...document.querySelectorAll('.occ-thumbs img')]"
                                    ".map(i => [i.alt, i.naturalWidth])")
     assert sorted(n for n, _ in thumbs) == sorted(CAMERAS) and all(w == 480 for _, w in thumbs)
-    keep(tmp_path, "viewer_prediction_real_frame.png", driver.get_screenshot_as_png(), docs=False)
+    keep_screenshot(tmp_path, "viewer_prediction_real_frame.png", driver.get_screenshot_as_png(), docs=False)
 
 
 def test_eval_html_shows_ground_truth_beside_prediction(driver, tmp_path):
@@ -119,7 +108,7 @@ def test_eval_html_shows_ground_truth_beside_prediction(driver, tmp_path):
     state, _ = open_viewer(driver, html)
     assert [p["name"] for p in state["panes"]] == ["ground truth", "prediction"]
     assert all(p["voxels"] > 0 for p in state["panes"])
-    keep(tmp_path, "viewer_side_by_side.png", driver.get_screenshot_as_png())
+    keep_screenshot(tmp_path, "viewer_side_by_side.png", driver.get_screenshot_as_png())
     # switchable: one pane at a time
     driver.execute_script("const s = document.getElementById('occ-layout'); s.value = '1';"
                           "s.dispatchEvent(new Event('change'));")
