@@ -8,7 +8,8 @@ Checks: /healthz answers ok and /readyz becomes ready, each polled every 50 ms b
 the server's own warm-up time); /v1/metadata names the model file; then one
 POST /v1/occupancy of the frame per response format, each grid equal, voxel for voxel, to the reference computed by
 local onnxruntime (`occflownet predict --model`). The PNG is decoded and compared pixel for pixel with the picture
-serve/encode.py draws from the reference grid with the model's class colours. Exit status 1 on the first failure.
+serve/encode.py draws from the reference grid with the model's class colours. Last, the browser page ``/ui`` and its
+script, byte for byte the package's (tests/test_serve_page.py drives the page itself in Chromium). Exit status 1 on the first failure.
 """
 from __future__ import annotations
 
@@ -128,7 +129,21 @@ def main() -> int:
         diff = int((rgb != want).any(axis=2).sum())
         check(diff == 0, f"image/png: {diff} pixels differ from the picture drawn from the local grid")
         print(f"probe: POST image/png: {rgb.shape[1]}x{rgb.shape[0]}, equal to the picture of the local grid")
+        check_ui(client)
     return 0
+
+
+def check_ui(client: httpx.Client) -> None:
+    """The browser page and its one script come from the image's package data, with the page's strict policy."""
+    from occflownet.viewer import BUNDLE, PAGE
+
+    page = client.get("/ui", timeout=10)
+    check(page.status_code == 200 and page.content == PAGE.read_bytes(), f"GET /ui: {page.status_code}")
+    check("default-src 'none'" in page.headers.get("content-security-policy", ""), "GET /ui: no strict policy")
+    script = client.get("/ui/occflownet-web.js", timeout=10)
+    check(script.status_code == 200 and script.content == BUNDLE.read_bytes(),
+          f"GET /ui/occflownet-web.js: {script.status_code}, {len(script.content)} bytes, not the package's script")
+    print(f"probe: GET /ui and its script ({len(script.content) / 1024:.0f} KiB) served from the image's package data")
 
 
 if __name__ == "__main__":

@@ -45,13 +45,15 @@ class QuickstartPaths:
     eval_json: Path
     onnx: Path
     picture: Path
+    viewer: Path
     example: Path
 
     @classmethod
     def under(cls, out: Path) -> QuickstartPaths:
         return cls(world=out / "world", run=out / "run", checkpoint=out / "run" / "checkpoints" / "last.pt",
                    predictions=out / "predictions", eval_json=out / "eval.json", onnx=out / "model.onnx",
-                   picture=out / "side_by_side.png", example=out / "example")
+                   picture=out / "side_by_side.png", viewer=out / "view.html",
+                   example=out / "example")
 
 
 def _announce(log: Callable[[str], None], n: int, argv: list[str], note: str = "") -> None:
@@ -76,7 +78,7 @@ def run_quickstart(cfg: QuickstartConfig = QuickstartConfig(),
             raise
     sample = first_val_sample(result["prepare"].index)
     write_example(paths.world, sample, paths.example)
-    write_picture(paths.world, sample, paths.predictions, paths.picture)
+    write_picture(paths.world, sample, paths.predictions, paths.picture, paths.viewer)
     return {"paths": paths, "eval": result["eval"], "minutes": (time.monotonic() - t0) / 60}
 
 
@@ -146,14 +148,16 @@ def first_val_sample(index):
     return index[int(index.split_positions("val")[0])]
 
 
-def write_picture(world: Path, sample, predictions: Path, path: Path) -> Path:
+def write_picture(world: Path, sample, predictions: Path, path: Path, viewer: Path | None = None) -> Path:
     """The side-by-side picture (:mod:`occflownet.eval.picture`) of keyframe ``sample`` (a SampleRecord of
-    ``world``) from its prediction saved in ``predictions``."""
-    from occflownet.eval.picture import sample_side_by_side
+    ``world``) from its prediction saved in ``predictions``, and its 3D viewer file at ``viewer`` if given."""
+    from occflownet.eval.picture import sample_side_by_side, sample_viewer
     from occflownet.pictures import save_png
 
     with np.load(predictions / f"{sample.token}.npz") as z:
         occupancy = z["occupancy"]
+    if viewer is not None:
+        sample_viewer(world, sample, occupancy, viewer)
     return save_png(path, sample_side_by_side(world, sample, occupancy))
 
 

@@ -1,7 +1,8 @@
 """The FastAPI app: ``create_app(settings)``; the model is loaded once, at start-up, in the lifespan.
 
 Layout (FastAPI's "bigger applications"): the routes are in :mod:`occflownet.serve.routers` (``/healthz``,
-``/readyz``, ``/v1/metadata``, ``/metrics``, ``POST /v1/occupancy``; docs/contracts.md, docs/serve.md), what they
+``/readyz``, ``/v1/metadata``, ``/metrics``, ``POST /v1/occupancy``, and the browser page ``/ui`` unless
+``settings.ui`` is off; docs/contracts.md, docs/serve.md), what they
 need from the process comes through :mod:`occflownet.serve.dependencies`, their JSON bodies are the pydantic models
 of :mod:`occflownet.serve.schemas`, and every error answers ``{"error": {"code", "message"}}``
 (:mod:`occflownet.serve.errors`). Imports neither torch nor anything that imports it.
@@ -22,7 +23,7 @@ from occflownet.serve.malloc import cap_malloc_arenas
 from occflownet.serve.metrics import Metrics
 from occflownet.serve.middleware import ApiKeyMiddleware, MetricsMiddleware
 from occflownet.serve.model_runtime import ModelLoadError, ModelRuntime
-from occflownet.serve.routers import health, metadata, metrics, occupancy
+from occflownet.serve.routers import health, metadata, metrics, occupancy, ui
 from occflownet.serve.settings import ServeSettings
 
 log = logging.getLogger("occflownet.serve")
@@ -44,6 +45,8 @@ def create_app(settings: ServeSettings | None = None, runtime: ModelRuntime | No
     app.add_middleware(MetricsMiddleware, metrics=registry)  # added last = outermost: sees every answer
     for module in (health, metadata, metrics, occupancy):
         app.include_router(module.router)
+    if settings.ui:
+        app.include_router(ui.make_router())
     return app
 
 

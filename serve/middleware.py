@@ -1,6 +1,7 @@
 """ASGI middlewares of the app: request metrics (outermost) and the optional API key.
 
-API key: when ``OCCFLOWNET_API_KEY`` is set, every route except ``/healthz`` and ``/readyz`` (probes) needs
+API key: when ``OCCFLOWNET_API_KEY`` is set, every route except ``/healthz`` and ``/readyz`` (probes) and the
+browser page's static files (``/``, ``/ui``, its script: no model data; the page sends the key itself) needs
 ``Authorization: Bearer <key>``; the comparison is ``hmac.compare_digest`` (constant time). Missing or wrong → 401.
 """
 from __future__ import annotations
@@ -10,9 +11,12 @@ import time
 
 from occflownet.serve.errors import error_response
 from occflownet.serve.metrics import Metrics
+from occflownet.serve.routers.ui import PATHS as UI_PATHS
 
-PUBLIC_PATHS = ("/healthz", "/readyz")
-ROUTES = ("/healthz", "/readyz", "/metrics", "/v1/metadata", "/v1/occupancy", "/docs", "/redoc", "/openapi.json")
+# the probes, and the browser page's static files (no model data; the page sends the key with its API calls)
+PUBLIC_PATHS = ("/healthz", "/readyz", *UI_PATHS)
+ROUTES = ("/healthz", "/readyz", "/metrics", "/v1/metadata", "/v1/occupancy", "/docs", "/redoc", "/openapi.json",
+          *UI_PATHS)
 
 
 def route_label(path: str) -> str:

@@ -17,6 +17,7 @@ reads them back with :meth:`ServeSettings.from_env`.
 | ``OCCFLOWNET_ORT_SPIN``           | ort_spin           | 0: ORT worker threads sleep between runs             |
 | ``OCCFLOWNET_PROVIDERS``          | providers          | CPUExecutionProvider (comma-separated list)          |
 | ``OCCFLOWNET_WARMUP``             | warmup             | 1: one inference before /readyz turns ready          |
+| ``OCCFLOWNET_UI``                 | ui                 | 1: the browser page at /ui (0: the API only)         |
 """
 from __future__ import annotations
 
@@ -53,6 +54,7 @@ class ServeSettings:
     ort_spin: bool = False
     providers: list[str] = field(default_factory=lambda: ["CPUExecutionProvider"])
     warmup: bool = True
+    ui: bool = True
 
     def resolved(self) -> "ServeSettings":
         """A copy with the core-dependent defaults filled in and every limit checked (ValueError names the field)."""
@@ -105,7 +107,7 @@ class ServeSettings:
 def _parse(name: str, raw: str):
     if name in ("model_path", "api_key"):
         return raw
-    if name in ("ort_spin", "warmup"):
+    if name in ("ort_spin", "warmup", "ui"):
         low = raw.strip().lower()
         if low in ("1", "true", "yes", "on"):
             return True

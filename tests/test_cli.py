@@ -5,7 +5,8 @@ from occflownet.cli import VERBS, build_parser
 
 
 def test_all_design_verbs_exist():
-    assert set(VERBS) == {"synth", "labels", "prepare", "train", "eval", "export", "predict", "serve", "quickstart"}
+    assert set(VERBS) == {"synth", "labels", "prepare", "train", "eval", "export", "predict", "serve", "quickstart",
+                          "view"}
 
 
 def test_help_runs_without_torch():

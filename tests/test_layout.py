@@ -26,7 +26,8 @@ MAX_LINES = 60
 # Layers in data-flow order; a module's layer is that of its longest matching prefix.
 LAYERS = (
     ("core", ("occflownet", "occflownet.occ3d", "occflownet.geometry", "occflownet.rig", "occflownet.contract",
-              "occflownet.pictures", "occflownet.voxel_walk", "occflownet.voxel_walk_numba", "occflownet.files")),
+              "occflownet.pictures", "occflownet.voxel_walk", "occflownet.voxel_walk_numba", "occflownet.files",
+              "occflownet.viewer")),
     ("data", ("occflownet.data",)),
     ("labels", ("occflownet.labels",)),
     ("synth", ("occflownet.synth",)),

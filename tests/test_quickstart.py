@@ -20,9 +20,13 @@ def test_quickstart_small(tmp_path, capsys):
 
     picture = cv2.imread(str(out / "side_by_side.png"))      # ground truth beside the prediction
     assert picture is not None and picture.shape[1] == 1200 and "side_by_side.png" in printed
+    viewer = (out / "view.html").read_text()                   # the same keyframe in 3D, next to the picture
+    assert "view.html" in printed and 'id="occ-data"' in viewer and '"ground truth"' in viewer
     assert sorted(p.name for p in (out / "example").iterdir())[:2] == ["CAM_BACK.jpg", "CAM_BACK_LEFT.jpg"]
     # the printed predict command works on the example it wrote
     assert main(["predict", "--model", str(out / "model.onnx"), "--images", str(out / "example"), "--calib",
-                 str(out / "example" / "calib.json"), "--out", str(tmp_path / "grid.npz")]) == 0
+                 str(out / "example" / "calib.json"), "--out", str(tmp_path / "grid.npz"), "--html",
+                 str(tmp_path / "grid.html")]) == 0
+    assert "CAM_FRONT" in (tmp_path / "grid.html").read_text()
     with np.load(tmp_path / "grid.npz") as z:
         assert z["occupancy"].shape == (200, 200, 16)

@@ -30,6 +30,9 @@ def add_arguments(p):
     p.add_argument("--split", default="val", help="split to evaluate (default: val)")
     p.add_argument("--save-predictions", default=None, metavar="DIR",
                    help="write DIR/<sample_token>.npz (occupancy uint8 [200,200,16], density float32) per sample")
+    p.add_argument("--html", type=_positive_int, default=None, metavar="N",
+                   help="with --save-predictions: also write DIR/<sample_token>.html, the 3D viewer of the ground "
+                        "truth beside the prediction, for the first N samples")
     p.add_argument("--max-samples", type=_positive_int, default=None, metavar="N",
                    help="evaluate only the first N samples of the split")
     p.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (the slower metric, ~0.3 s per sample)")
@@ -56,6 +59,10 @@ def run(args) -> int:
     from occflownet.eval.evaluate import evaluate, select_samples
 
     source = args.model or args.checkpoint
+    if args.html and not args.save_predictions:
+        print("occflownet eval: error: --html needs --save-predictions DIR (the viewer files go there)",
+              file=sys.stderr)
+        return 2
     try:
         if not Path(source).is_file():
             what = "ONNX model" if args.model else "checkpoint"
@@ -72,6 +79,7 @@ def run(args) -> int:
         result = evaluate(samples, predict, batch_size=args.batch_size, save_predictions=args.save_predictions,
                           rayiou=not args.no_rayiou, progress=not args.quiet,
                           fog_horizon=None if args.no_fog else 3)
+        viewers = _write_viewers(samples, Path(args.save_predictions), args.html) if args.html else []
     except (DatasetError, FileNotFoundError, KeyError, ValueError, OSError) as e:
         print(f"occflownet eval: error: {_message(e)}", file=sys.stderr)
         return 1
@@ -81,4 +89,21 @@ def run(args) -> int:
     print(text)
     if args.output:
         Path(args.output).write_text(text + "\n")
+    for path in viewers:
+        print(f"wrote {path}", file=sys.stderr)
     return 0
+
+
+def _write_viewers(samples, folder, n: int) -> list:
+    """The viewer files (ground truth beside prediction) of the first ``n`` samples, from their saved predictions."""
+    import numpy as np
+
+    from occflownet.eval.picture import sample_viewer
+
+    paths = []
+    for position in samples.positions[:n]:
+        sample = samples.index[int(position)]
+        with np.load(folder / f"{sample.token}.npz") as z:
+            occupancy = z["occupancy"]
+        paths.append(sample_viewer(samples.dataroot, sample, occupancy, folder / f"{sample.token}.html"))
+    return paths

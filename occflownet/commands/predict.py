@@ -16,13 +16,15 @@ def add_arguments(parser):
     parser.add_argument("--calib", required=True, help="calibration JSON (per camera intrinsic + cam2ego)")
     parser.add_argument("--out", required=True, help="output .npz (occupancy uint8, density float32)")
     parser.add_argument("--png", help="optional top-down picture of the grid")
+    parser.add_argument("--html", help="optional 3D viewer of the grid (one self-contained HTML file, with the "
+                                       "camera images and frusta)")
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: cores)")
 
 
 def run(args) -> int:
     import time
 
-    from occflownet import contract, pictures, predict
+    from occflownet import contract, pictures, predict, viewer
     from occflownet.occ3d import CLASS_NAMES, FREE
 
     problem = source_problem(args)
@@ -31,7 +33,8 @@ def run(args) -> int:
         return 2
     try:
         images = predict.load_image_folder(args.images)
-        K, T = contract.calibration_arrays(contract.load_calibration(args.calib), images.shape[2], images.shape[1])
+        calib = contract.load_calibration(args.calib)
+        K, T = contract.calibration_arrays(calib, images.shape[2], images.shape[1])
         t0 = time.perf_counter()
         if args.model:
             session = contract.create_session(args.model, args.threads)
@@ -43,6 +46,10 @@ def run(args) -> int:
         predict.save_grid(args.out, occupancy, density)
         if args.png:
             pictures.save_png(args.png, pictures.top_down(occupancy))
+        if args.html:
+            files = {cam: p.read_bytes() for cam, p in predict.find_camera_images(args.images).items()}
+            viewer.write_viewer(args.html, [viewer.ViewGrid("prediction", occupancy)], calib, files,
+                                title=f"occflownet predict: {args.images}", subtitle=f"grid: {args.out}")
     except (FileNotFoundError, ValueError, OSError) as exc:
         print(f"occflownet predict: {exc}", file=sys.stderr)
         return 1
@@ -51,6 +58,7 @@ def run(args) -> int:
     top = sorted(((n, c) for c, n in counts.items() if c != FREE and n), reverse=True)[:5]
     print(f"wrote {args.out}: {occupied} occupied voxels of {occupancy.size} ({seconds * 1000:.0f} ms); "
           f"top classes: " + ", ".join(f"{CLASS_NAMES[c]} {n}" for n, c in top))
-    if args.png:
-        print(f"wrote {args.png}")
+    for extra in (args.png, args.html):
+        if extra:
+            print(f"wrote {extra}")
     return 0

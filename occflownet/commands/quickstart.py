@@ -47,9 +47,10 @@ quickstart finished in {done['minutes']:.1f} min.
   training run      {p.run}   (log.jsonl, checkpoints/last.pt)
   evaluation        {p.eval_json}
   picture           {p.picture}   (ground truth beside the prediction, first val keyframe)
+  3D viewer         {p.viewer}   (the same keyframe in 3D: open it in a browser)
   ONNX model        {p.onnx}
 
 next:
-  occflownet predict --model {p.onnx} --images {p.example} --calib {p.example / 'calib.json'} --out grid.npz --png bev.png
+  occflownet predict --model {p.onnx} --images {p.example} --calib {p.example / 'calib.json'} --out grid.npz --png bev.png --html view.html
   occflownet serve --model {p.onnx} --port 8000""")
     return 0

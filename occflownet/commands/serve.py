@@ -27,6 +27,7 @@ def add_arguments(parser):
     parser.add_argument("--max-image-pixels", type=int, default=None,
                         help="pixels per image, checked from the header before decoding (default 4096*4096)")
     parser.add_argument("--no-warmup", action="store_true", help="ready at once, without a warm-up inference")
+    parser.add_argument("--no-ui", action="store_true", help="no browser page at /ui: the API only")
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     parser.add_argument("--no-access-log", action="store_true", help="do not log one line per request")
 
@@ -44,6 +45,8 @@ def _settings(args):
         settings.max_body_bytes = int(args.max_body_mb * 1024 * 1024)
     if args.no_warmup:
         settings.warmup = False
+    if args.no_ui:
+        settings.ui = False
     return settings
 
 

@@ -9,6 +9,8 @@ frame to that ego frame and ``intrinsic`` is for the image as given.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from occflownet.occ3d import CLASS_COLORS, FREE, GRID
@@ -77,3 +79,22 @@ def sample_side_by_side(dataroot, sample, prediction: np.ndarray, camera: int = 
     labels = load_occupancy(dataroot, sample.occupancy_path)
     return side_by_side(prediction, labels.semantics, images[camera], sample.intrinsics[camera],
                         sample.cam2current_ego()[camera], CAMERAS[camera])
+
+
+def sample_viewer(dataroot, sample, prediction: np.ndarray, path) -> Path:
+    """The 3D viewer file (:mod:`occflownet.viewer`) of a keyframe: its Occ3D labels (with ``mask_camera``) beside
+    ``prediction`` uint8 [200, 200, 16], the six camera images as thumbnails and their frusta (intrinsics and
+    camera → keyframe-ego transforms of the index) → ``path``."""
+    from occflownet import viewer
+    from occflownet.data.loaders import load_occupancy
+
+    dataroot = Path(dataroot)
+    labels = load_occupancy(dataroot, sample.occupancy_path)
+    cam2ego = sample.cam2current_ego()
+    calib = {"cameras": {c.name: {"intrinsic": np.asarray(c.intrinsic).tolist(), "cam2ego": cam2ego[i].tolist()}
+                         for i, c in enumerate(sample.cameras)}}
+    images = {c.name: (dataroot / c.path).read_bytes() for c in sample.cameras}
+    grids = [viewer.ViewGrid("ground truth", labels.semantics, labels.mask_camera),
+             viewer.ViewGrid("prediction", prediction)]
+    return viewer.write_viewer(path, grids, calib, images, title=f"{sample.scene_name} {sample.token}",
+                               subtitle=f"{dataroot}: Occ3D labels beside the prediction")
