@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occflownet.files import atomic_path
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, FREE, GRID
 
 ASSETS = Path(__file__).resolve().with_name("assets")
@@ -161,6 +162,6 @@ def write_viewer(path: str | Path, grids: Sequence[ViewGrid], calibration: Mappi
     from ``calibration`` (None = the default rig), thumbnails from ``images`` ({camera: JPEG/PNG bytes})."""
     path = Path(path)
     data = viewer_data(grids, camera_entries(calibration, images), title)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(viewer_html(data, subtitle), encoding="utf-8")
+    with atomic_path(path) as tmp:                      # the file appears whole or not at all
+        tmp.write_text(viewer_html(data, subtitle), encoding="utf-8")
     return path
