@@ -8,7 +8,8 @@
 - the packages pyproject.toml installs are the package folders of the tree;
 - README.md's tour names every package and top-level module, and every path it names exists;
 - the documentation is self-contained (no pointer to notes outside the repository);
-- each contract has one definition: the ONNX tensor names and the HTTP error body are spelled out once.
+- each contract has one definition: the ONNX tensor names and the HTTP error body are spelled out once;
+- files are written atomically one way (`occflownet.files.atomic_path`).
 """
 from __future__ import annotations
 
@@ -212,3 +213,12 @@ def test_no_hand_built_error_bodies():
             if isinstance(node, ast.Dict) and any(isinstance(k, ast.Constant) and k.value == "error"
                                                   for k in node.keys)]
     assert not hits, hits
+
+
+def test_one_atomic_write_idiom():
+    """Files appear whole through ``occflownet.files.atomic_path`` only: no other module renames a temporary file
+    into place or makes its own temporary file beside the destination."""
+    calls = re.compile(r"\b(os\.replace|os\.rename|tempfile\.mkstemp|tempfile\.NamedTemporaryFile)\(")
+    package = [p for folder in PACKAGE_DIRS.values() for p in sorted(folder.rglob("*.py"))]
+    hits = [f"{p.relative_to(REPO)}: {m.group(1)}" for p in package for m in calls.finditer(p.read_text())]
+    assert hits == ["occflownet/files.py: tempfile.mkstemp", "occflownet/files.py: os.replace"], hits
