@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occflownet.contract import calibration_json
 from occflownet.data.index import load_index
 
 
@@ -167,6 +168,6 @@ def write_example(world: Path, sample, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     for cam in sample.cameras:
         shutil.copyfile(world / cam.path, folder / f"{cam.name}.jpg")
-    cams = {c.name: {"intrinsic": c.intrinsic.tolist(), "cam2ego": c.sensor2ego.tolist()} for c in sample.cameras}
-    (folder / "calib.json").write_text(json.dumps({"cameras": cams, "sample_token": sample.token}, indent=1))
+    calib = calibration_json(sample.intrinsics, sample.cam2ego) | {"sample_token": sample.token}
+    (folder / "calib.json").write_text(json.dumps(calib, indent=1))
     return folder

@@ -222,3 +222,13 @@ def test_one_atomic_write_idiom():
     package = [p for folder in PACKAGE_DIRS.values() for p in sorted(folder.rglob("*.py"))]
     hits = [f"{p.relative_to(REPO)}: {m.group(1)}" for p in package for m in calls.finditer(p.read_text())]
     assert hits == ["occflownet/files.py: tempfile.mkstemp", "occflownet/files.py: os.replace"], hits
+
+
+def test_calibration_json_built_in_one_place():
+    """Calibration dicts ({"cameras": {name: {"intrinsic", "cam2ego"}}}) come from ``contract.calibration_json``:
+    no other dict literal is a calibration camera entry (the viewer's frusta, with more keys, are another format)."""
+    package = [p for folder in PACKAGE_DIRS.values() for p in sorted(folder.rglob("*.py"))]
+    hits = [str(p.relative_to(REPO)) for p in package for node in ast.walk(ast.parse(p.read_text()))
+            if isinstance(node, ast.Dict)
+            and {k.value for k in node.keys if isinstance(k, ast.Constant)} == {"intrinsic", "cam2ego"}]
+    assert hits == ["occflownet/contract/calibration.py"], hits

@@ -19,6 +19,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
+from occflownet.contract import calibration_json
 from occflownet.data.index import load_index
 from occflownet.model import get_preset
 from occflownet.model.presets import ModelConfig
@@ -117,9 +118,7 @@ def _model_config(cfg: TrainConfig, index, positions):
     """The preset's ModelConfig with τ for this supervision and the training rig as default calibration."""
     model_cfg = get_preset(cfg.preset)
     sample = index[int(positions[0])]
-    calib = {"cameras": {c.name: {"intrinsic": c.intrinsic.tolist(), "cam2ego": c.sensor2ego.tolist()}
-                         for c in sample.cameras},
-             "image_size": [int(sample.cameras[0].width), int(sample.cameras[0].height)]}
+    calib = calibration_json(sample.intrinsics, sample.cam2ego, sample.image_sizes[0])
     head_init = cfg.head_init or model_cfg.head_init
     return replace(model_cfg, threshold=cfg.resolved_threshold(), default_calibration=calib, head_init=head_init)
 
