@@ -29,15 +29,16 @@ differentiable with respect to σ and logits: gradients flow from the warped cop
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, NamedTuple, Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 import torch
 
+from ..choices import FLOW_MOVERS
 from ..occ3d import GRID, Grid
 
-Mover = Literal["idw", "nearest"]
-MOVERS: tuple[str, ...] = ("idw", "nearest")
+Mover = str  # one of MOVERS
+MOVERS = FLOW_MOVERS
 SNAP_DISTANCE = 1e-4  # metres: an IDW target this close to a voxel centre goes wholly to that centre
 
 # Offsets of the 8 neighbouring voxel centres around a point, relative to the floor corner.

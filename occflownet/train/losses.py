@@ -27,9 +27,10 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from occflownet.choices import SUPERVISION_MODES
 from occflownet.occ3d import FREE, NUM_CLASSES
 
-MODES = ("2d", "3d", "2d+3d")
+MODES = SUPERVISION_MODES
 
 
 @dataclass(frozen=True)
