@@ -45,7 +45,7 @@ def make_app(kind: str, max_body: int):
     from occflownet.serve.errors import add_error_handlers
     from occflownet.serve.form import read_parts
     from occflownet.serve.limits import BodySizeLimitMiddleware
-    from occflownet.serve.settings import MAX_CALIBRATION_BYTES
+    from occflownet.serve.routers.occupancy import occupancy_parts
 
     app = FastAPI()
     add_error_handlers(app)
@@ -54,8 +54,7 @@ def make_app(kind: str, max_body: int):
     if kind == "reader":
         @app.post("/v1/occupancy")
         async def reader(request: Request):
-            limits = {cam: max_body for cam in CAMERAS} | {"calibration": MAX_CALIBRATION_BYTES}
-            parts = await read_parts(request, limits)
+            parts = await read_parts(request, occupancy_parts(CAMERAS, max_body))
             return {"parts": {name: len(p.data) for name, p in parts.items()}}
     else:
         @app.post("/v1/occupancy")

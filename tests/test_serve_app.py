@@ -369,3 +369,18 @@ bad = [m for m in ('torch', 'onnx', 'export', 'occflownet.model') if m in sys.mo
 assert not bad, f'serve imported {{bad}}'
 """
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_the_routes_parts_are_one_definition(client):
+    """The OpenAPI request body is written from the parts the reader allows (serve/routers/occupancy.py)."""
+    from occflownet.serve.form import openapi_request_body
+    from occflownet.serve.routers.occupancy import occupancy_parts
+
+    spec = client.get("/openapi.json").json()["paths"]["/v1/occupancy"]["post"]["requestBody"]
+    parts = occupancy_parts(CAMERAS, 1000)
+    assert spec == openapi_request_body(parts)
+    form = spec["content"]["multipart/form-data"]
+    assert form["schema"]["properties"]["CAM_FRONT"]["format"] == "binary"
+    assert "format" not in form["schema"]["properties"]["calibration"]                 # a file or a plain field
+    assert form["encoding"]["calibration"] == {"contentType": "application/json"}
+    assert parts["calibration"].limit == 1024 * 1024 and parts["CAM_BACK"].limit == 1000
