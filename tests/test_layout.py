@@ -28,6 +28,7 @@ MAX_LINES = 60
 LAYERS = (
     ("core", ("occflownet", "occflownet.occ3d", "occflownet.geometry", "occflownet.rig", "occflownet.contract",
               "occflownet.pictures", "occflownet.voxel_walk", "occflownet.voxel_walk_numba", "occflownet.files",
+              "occflownet.choices", "occflownet.options",
               "occflownet.viewer")),
     ("data", ("occflownet.data",)),
     ("labels", ("occflownet.labels",)),
