@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from occflownet.choices import FLOW_MOVERS
 from occflownet.occ3d import GRID, NUM_CLASSES
 from occflownet.data.flow import box_flows, flow_moves, save_flow_records
 from occflownet.geometry import make_transform, matrix_to_quaternion, yaw_to_quaternion
@@ -119,7 +120,7 @@ def bench_warp(record, arrays, frames, args) -> None:
 
     t_copy = timed(copy_only, args.repeat)
     print(f"plain copies (no boxes) of {len(frames)} frames: {1e3 * t_copy / len(frames):.1f} ms/frame")
-    for mover in ("idw", "nearest"):
+    for mover in FLOW_MOVERS:
         def run():
             out = warp_volumes(density, logits, source, moves, mover)
             sync()

@@ -113,7 +113,9 @@ def bench_preset(name: str, runs: int, occupied: float, images, K, T, workdir: P
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--presets", nargs="+", default=["tiny", "base"], choices=["tiny", "base", "paper"])
+    from occflownet.choices import PRESET_NAMES
+
+    p.add_argument("--presets", nargs="+", default=["tiny", "base"], choices=PRESET_NAMES)
     p.add_argument("--runs", type=int, default=20, help="timed runs per backend (after 2 warm-up runs)")
     p.add_argument("--occupied", type=float, default=0.25, help="fraction of occupied voxels to simulate")
     p.add_argument("--variants", action="store_true", help="also time the fp16 and int8 graphs")

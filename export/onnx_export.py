@@ -14,13 +14,11 @@ Pipeline (nothing is written to ``out`` unless every step passes):
 3. ``onnx.checker`` (full check), every node in the standard domain, inputs/outputs as in contract v1.
 4. onnxruntime loads it and must agree with torch on every parity sample (``parity.py``): density within 1e-4
    absolute, occupancy equal on ≥ 99.99 % of the voxels whose σ is not within 1e-3 of τ.
-5. Temp file in the destination folder + ``os.replace``.
+5. Temp file in the destination folder + ``os.replace`` (``occflownet.files.atomic_path``).
 """
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -34,6 +32,7 @@ from occflownet import __version__, contract
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, FREE, GRID
 from occflownet.contract import CONTRACT_VERSION as CONTRACT
 from occflownet.contract import INPUT_NAMES, OUTPUT_NAMES, calibration_arrays
+from occflownet.files import atomic_path
 from occflownet.model import InferenceGraph, ModelConfig, OccupancyModel
 
 from occflownet.export.parity import ParityCase, ParitySample, check_parity, default_parity_samples
@@ -245,10 +244,7 @@ def export_model(model: OccupancyModel, cfg: ModelConfig, out: str | Path, *,
     height = torch.export.Dim("height", min=32, max=16384)
     width = torch.export.Dim("width", min=32, max=16384)
     dynamic = {"images": {0: batch, 2: height, 3: width}, "intrinsics": {0: batch}, "cam2ego": {0: batch}}
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    os.close(fd)
-    tmp = Path(tmp)
-    try:
+    with atomic_path(out) as tmp:
         proto = trace_to_onnx(InferenceGraph(model).eval(), example_inputs(cfg), tmp, INPUT_NAMES, OUTPUT_NAMES,
                               dynamic)
         metadata = contract_metadata(cfg, extra_metadata)
@@ -260,10 +256,6 @@ def export_model(model: OccupancyModel, cfg: ModelConfig, out: str | Path, *,
         if failed:
             raise ExportError("torch/onnxruntime parity failed, nothing written:\n  "
                               + "\n  ".join(c.describe() for c in failed))
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return ExportResult(out, cases, time.perf_counter() - t0, metadata)
 
 

@@ -22,6 +22,7 @@ from occflownet.export.onnx_export import ExportError, agreement, validate_proto
 from occflownet.export.parity import default_parity_samples, frame_sample
 from occflownet.contract import create_session, run_session
 from occflownet.model import ModelConfig
+from occflownet.occ3d import FREE
 
 # ops kept in float32 in the fp16 variant: index/geometry arithmetic, pooling, resize, fusion
 FP16_KEEP_FP32 = ["Resize", "ScatterND", "ScatterElements", "Floor", "Where", "Range", "NonZero", "GatherND",
@@ -161,7 +162,7 @@ def write_variants(fp32_path: str | Path, cfg: ModelConfig, fp16: bool = False, 
             dst.unlink(missing_ok=True)
             raise ExportError(f"{tag} variant failed: {type(exc).__name__}: {exc}") from exc
         a = agreement(reference[0], reference[1], out[0], out[1])
-        occupied = float(np.mean(reference[0] != 17))
+        occupied = float(np.mean(reference[0] != FREE))
         lines.append(f"wrote {dst} ({dst.stat().st_size / 1e6:.1f} MB): vs fp32 on {sample.name}: occupancy equal "
                      f"{100 * a['occupancy_equal_fraction']:.3f}% of voxels (fp32 occupied "
                      f"{100 * occupied:.1f}%), density max abs diff {a['density_max_abs_diff']:.2e}")

@@ -12,10 +12,11 @@ from pathlib import Path
 
 
 @contextmanager
-def atomic_path(path):
+def atomic_path(path, fsync: bool = False):
     """Yield a temporary path beside ``path`` (same folder, created if needed); on a clean exit it replaces
     ``path``, on an exception it is removed. The caller writes the temporary path (keeping its suffix, so that
-    libraries that look at the suffix, e.g. ``np.savez``, write what is asked)."""
+    libraries that look at the suffix, e.g. ``np.savez``, write what is asked). With ``fsync`` the written file is
+    flushed to the disk before the rename (checkpoints: a power cut leaves the old file or the whole new one)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + "".join(path.suffixes[-1:]), dir=path.parent)
@@ -23,6 +24,9 @@ def atomic_path(path):
     tmp = Path(tmp)
     try:
         yield tmp
+        if fsync:
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
         os.replace(tmp, path)
     finally:
         if tmp.exists():

@@ -19,19 +19,29 @@ from pathlib import Path
 
 import numpy as np
 
+from occflownet.choices import SUPERVISION_MODES, supervision_parts
+from occflownet.contract import calibration_json
 from occflownet.data.index import load_index
+from occflownet.options import config_argv, option
+from occflownet.train.recipe import TrainConfig
 
 
 @dataclass(frozen=True)
 class QuickstartConfig:
-    out: str = "quickstart"          # folder for the world, the run, the model and the pictures
-    scenes: int = 3                  # synthetic scenes; the last one is the val split
-    frames: int = 16                 # keyframes per scene
-    seed: int = 0
-    train_minutes: float = 7.0       # training time budget
-    max_steps: int = 1000            # step cap (about the time budget on a 2-core CPU)
-    supervision: str = "3d"          # 3D labels: within minutes on a CPU the model closest to the street
-    voxel_mask: bool = True          # 3D voxel losses inside mask_camera (the quickest recipe measured)
+    """The quickstart's choices; `occflownet quickstart` derives its options from these fields
+    (``occflownet/options.py``)."""
+
+    out: str = option("quickstart", "folder for the world, the run, the model and the pictures")
+    scenes: int = option(3, "synthetic scenes (the last one is the val split)")
+    frames: int = option(16, "keyframes per scene")
+    seed: int = option(0, "seed of the world and of the training run")
+    train_minutes: float = option(7.0, "training time budget in minutes")
+    max_steps: int = option(1000, "step cap (about the time budget on a 2-core CPU)")
+    supervision: str = option("3d", "3d: within minutes on a CPU, 3D labels inside the camera mask give the model "
+                                    "closest to the street of the recipes measured; 2d needs a far longer budget "
+                                    "(docs/ablation.md, docs/training.md)", choices=SUPERVISION_MODES)
+    voxel_mask: bool = option(True, "3D voxel losses only inside mask_camera (train --voxel-mask; the quickest "
+                                    "recipe measured, docs/training.md)")
 
 
 @dataclass(frozen=True)
@@ -104,19 +114,26 @@ def _prepare(cfg: QuickstartConfig, paths: QuickstartPaths, announce):
     return prepare(paths.world, progress=True)
 
 
+def train_config(cfg: QuickstartConfig, world: Path, run: Path, version: str) -> TrainConfig:
+    """The run the quickstart trains: ``tiny`` on ``world``'s train split into ``run``, with occupancy flow when
+    rays are rendered (2D supervision), for ``cfg``'s time and step budget."""
+    return TrainConfig(preset="tiny", dataroot=str(world), out=str(run), version=version, split="train",
+                       supervision=cfg.supervision, flow="2d" in supervision_parts(cfg.supervision),
+                       time_limit_s=cfg.train_minutes * 60,
+                       max_steps=cfg.max_steps, seed=cfg.seed, voxel_mask=cfg.voxel_mask)
+
+
+def train_argv(train_cfg: TrainConfig) -> list[str]:
+    """The ``occflownet train`` arguments that run ``train_cfg`` (and resume it): parsed again, the same config."""
+    baseline = TrainConfig(preset=train_cfg.preset)
+    return ["train", *config_argv(train_cfg, baseline, always=("preset", "dataroot", "out", "version")), "--resume"]
+
+
 def _train(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> Path:
     from occflownet.train.loop import train
-    from occflownet.train.recipe import TrainConfig
 
-    announce(["train", "--preset", "tiny", "--dataroot", str(paths.world), "--out", str(paths.run), "--split",
-              "train", "--supervision", cfg.supervision, "--flow" if cfg.supervision != "3d" else "--no-flow",
-              "--time-limit", str(cfg.train_minutes * 60), "--max-steps", str(cfg.max_steps), "--resume",
-              "--seed", str(cfg.seed), "--voxel-mask" if cfg.voxel_mask else "--no-voxel-mask"])
-    train_cfg = TrainConfig(preset="tiny", dataroot=str(paths.world), out=str(paths.run),
-                            version=load_index(paths.world, None, check_tables=False).version, split="train",
-                            supervision=cfg.supervision, flow=cfg.supervision != "3d",
-                            time_limit_s=cfg.train_minutes * 60, max_steps=cfg.max_steps, seed=cfg.seed,
-                            voxel_mask=cfg.voxel_mask)
+    train_cfg = train_config(cfg, paths.world, paths.run, load_index(paths.world, None, check_tables=False).version)
+    announce(train_argv(train_cfg))
     return train(train_cfg, resume=True, progress=True)
 
 
@@ -167,6 +184,6 @@ def write_example(world: Path, sample, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     for cam in sample.cameras:
         shutil.copyfile(world / cam.path, folder / f"{cam.name}.jpg")
-    cams = {c.name: {"intrinsic": c.intrinsic.tolist(), "cam2ego": c.sensor2ego.tolist()} for c in sample.cameras}
-    (folder / "calib.json").write_text(json.dumps({"cameras": cams, "sample_token": sample.token}, indent=1))
+    calib = calibration_json(sample.intrinsics, sample.cam2ego) | {"sample_token": sample.token}
+    (folder / "calib.json").write_text(json.dumps(calib, indent=1))
     return folder

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from occflownet.contract.calibration import calibration_json
 from occflownet.occ3d import CAMERAS
 
 # name: (position in the ego frame [m], yaw of the optical axis about +z [deg], focal length at 1600 px width)
@@ -45,8 +46,6 @@ def intrinsic(focal_1600: float, width: int, height: int) -> np.ndarray:
 
 def default_rig(width: int = 1600, height: int = 900) -> dict:
     """The default rig as calibration JSON (docs/contracts.md), plus its ``image_size`` [width, height]."""
-    cams = {}
-    for name in CAMERAS:
-        pos, yaw, f = _RIG_1600[name]
-        cams[name] = {"intrinsic": intrinsic(f, width, height).tolist(), "cam2ego": cam2ego(pos, yaw).tolist()}
-    return {"cameras": cams, "image_size": [width, height]}
+    rig = [_RIG_1600[name] for name in CAMERAS]
+    return calibration_json([intrinsic(f, width, height) for _, _, f in rig],
+                            [cam2ego(pos, yaw) for pos, yaw, _ in rig], (width, height))

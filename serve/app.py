@@ -75,7 +75,7 @@ def _lifespan(settings: ServeSettings, runtime: ModelRuntime | None, registry: M
             ctx.warmup_task = asyncio.get_running_loop().run_in_executor(None, _warm_up, model, registry)
         else:
             model.ready.set()
-            registry.ready = 1
+            registry.set_ready()
         log.info("model %s loaded (preset %s, sha256 %s); %d inference slot(s) × %d thread(s), queue %d",
                  model.path, model.metadata.preset, model.sha256[:12], settings.max_inflight,
                  settings.intra_op_threads, settings.max_queue)
@@ -83,6 +83,7 @@ def _lifespan(settings: ServeSettings, runtime: ModelRuntime | None, registry: M
             yield
         finally:
             gate.shutdown()
+            registry.process_exited()
 
     return lifespan
 
@@ -93,5 +94,5 @@ def _warm_up(model: ModelRuntime, registry: Metrics) -> None:
     except Exception:
         log.exception("warm-up inference failed; /readyz stays 503")
         return
-    registry.ready = 1
+    registry.set_ready()
     log.info("warm-up inference done in %.2f s: ready", model.warmup_seconds)

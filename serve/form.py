@@ -4,6 +4,10 @@ Parts are collected as raw bytes whether or not the client gave a filename (no t
 A part with an unexpected or repeated name is refused (422) as soon as its headers arrive, before its data is read;
 missing parts are reported (422) once the body has ended. Each part has its own byte limit; the whole body is
 bounded by :class:`occflownet.serve.limits.BodySizeLimitMiddleware`.
+
+The parts a route allows are one definition, a {name: :class:`FormPart`} dict: the reader's names and limits
+(:func:`read_parts`) and the route's OpenAPI request body (:func:`openapi_request_body`) both come from it. FastAPI's
+own ``UploadFile``/``File`` handling cannot hold these limits (docs/serve.md, "Why the route reads its own form").
 """
 from __future__ import annotations
 
@@ -15,6 +19,29 @@ from starlette.requests import ClientDisconnect
 
 from occflownet.serve.errors import ApiError
 from occflownet.serve.limits import BodyTooLarge
+
+
+@dataclass(frozen=True)
+class FormPart:
+    """One allowed part: its byte ``limit``, whether it is ``required``, its OpenAPI ``description``, whether it is
+    ``binary`` (a file) or text, and the media types it is sent as (``content_type``, for the OpenAPI encoding)."""
+
+    limit: int
+    required: bool
+    description: str
+    binary: bool = True
+    content_type: str = "application/octet-stream"
+
+
+def openapi_request_body(parts: dict[str, FormPart]) -> dict:
+    """The OpenAPI ``requestBody`` of a multipart/form-data route that allows ``parts``."""
+    properties = {name: {"type": "string", **({"format": "binary"} if p.binary else {}),
+                         "description": p.description} for name, p in parts.items()}
+    return {"required": True, "content": {"multipart/form-data": {
+        "schema": {"type": "object", "properties": properties,
+                   "required": [name for name, p in parts.items() if p.required]},
+        "encoding": {name: {"contentType": p.content_type} for name, p in parts.items()},
+    }}}
 
 
 @dataclass
@@ -40,8 +67,8 @@ class _PartCollector:
     """The streaming parser's callbacks: each part's headers checked as soon as they end (name, duplicates), its
     data counted against its limit while it streams, the finished parts in :attr:`parts` by name."""
 
-    def __init__(self, limits: dict[str, int]):
-        self.limits = limits
+    def __init__(self, parts: dict[str, FormPart]):
+        self.limits = {name: p.limit for name, p in parts.items()}
         self.parts: dict[str, Part] = {}
         self.ended = False
         self._begin()
@@ -93,11 +120,11 @@ class _PartCollector:
         self.ended = True
 
 
-async def read_parts(request, limits: dict[str, int]) -> dict[str, Part]:
-    """Read the request's multipart body → {part name: Part}. ``limits`` maps every allowed part name to its byte
-    limit. Raises ApiError: 415 (not multipart), 400 (malformed), 413 (over a limit), 422 (names)."""
+async def read_parts(request, parts: dict[str, FormPart]) -> dict[str, Part]:
+    """Read the request's multipart body → {part name: Part} of the allowed ``parts`` (each with its byte limit).
+    Raises ApiError: 415 (not multipart), 400 (malformed), 413 (over a limit), 422 (names)."""
     boundary = _check_content_type(request.headers.get("content-type"))
-    collector = _PartCollector(limits)
+    collector = _PartCollector(parts)
     parser = MultipartParser(boundary, collector.callbacks())
     try:
         async for chunk in request.stream():

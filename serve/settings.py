@@ -1,8 +1,11 @@
-"""Server settings: one typed dataclass, filled from ``OCCFLOWNET_*`` environment variables or the CLI.
+"""Server settings: one typed ``pydantic-settings`` class, filled from keyword arguments (the command line), the
+``OCCFLOWNET_*`` environment variables and a ``.env`` file in the working folder, in that order of precedence, then
+the defaults. Every value is validated when the settings are made; a bad one raises :class:`SettingsError` naming
+the variable (``OCCFLOWNET_MAX_QUEUE='many': Input should be a valid integer ...``).
 
 The environment is the one channel that reaches every uvicorn worker process (``--workers N`` starts the app from an
-import string in fresh processes), so ``occflownet serve`` writes its options into the environment and each worker
-reads them back with :meth:`ServeSettings.from_env`.
+import string in fresh processes), so ``occflownet serve`` writes its settings into the environment
+(:meth:`ServeSettings.to_env`) and each worker reads them back (:meth:`ServeSettings.from_env`).
 
 | variable                          | field              | default                                              |
 |-----------------------------------|--------------------|------------------------------------------------------|
@@ -18,17 +21,27 @@ reads them back with :meth:`ServeSettings.from_env`.
 | ``OCCFLOWNET_PROVIDERS``          | providers          | CPUExecutionProvider (comma-separated list)          |
 | ``OCCFLOWNET_WARMUP``             | warmup             | 1: one inference before /readyz turns ready          |
 | ``OCCFLOWNET_UI``                 | ui                 | 1: the browser page at /ui (0: the API only)         |
+
+Booleans take 1/0, true/false, yes/no, on/off; an empty variable counts as unset.
 """
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field, fields
+from typing import Annotated
+
+from pydantic import Field, ValidationError, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 ENV_PREFIX = "OCCFLOWNET_"
+MODEL_ENV = ENV_PREFIX + "MODEL"
 DEFAULT_MAX_BODY_BYTES = 64 * 1024 * 1024
 DEFAULT_MAX_IMAGE_PIXELS = 4096 * 4096
 DEFAULT_MAX_QUEUE = 4
 MAX_CALIBRATION_BYTES = 1024 * 1024
+
+
+class SettingsError(ValueError):
+    """A setting has a value it cannot take; the message names the variable or field and the value."""
 
 
 def available_cores() -> int:
@@ -39,81 +52,75 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-@dataclass
-class ServeSettings:
-    """Everything the app needs; ``None`` fields get their defaults from :meth:`resolved`."""
+class ServeSettings(BaseSettings):
+    """Everything the app needs; ``None`` fields get their core-dependent defaults from :meth:`resolved`."""
 
-    model_path: str = ""
-    api_key: str | None = None
-    max_body_bytes: int = DEFAULT_MAX_BODY_BYTES
-    max_image_pixels: int = DEFAULT_MAX_IMAGE_PIXELS
-    intra_op_threads: int | None = None
-    max_inflight: int | None = None
-    max_queue: int = DEFAULT_MAX_QUEUE
-    workers: int = 1
-    ort_spin: bool = False
-    providers: list[str] = field(default_factory=lambda: ["CPUExecutionProvider"])
-    warmup: bool = True
-    ui: bool = True
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, env_file=".env", env_ignore_empty=True, extra="ignore",
+                                      populate_by_name=True, frozen=True)
 
-    def resolved(self) -> "ServeSettings":
-        """A copy with the core-dependent defaults filled in and every limit checked (ValueError names the field)."""
-        cores_per_worker = max(1, available_cores() // max(1, self.workers))
-        threads = self.intra_op_threads or cores_per_worker
-        inflight = self.max_inflight or max(1, cores_per_worker // threads)
-        out = ServeSettings(**{**asdict(self), "intra_op_threads": threads, "max_inflight": inflight})
-        for name in ("max_body_bytes", "max_image_pixels", "intra_op_threads", "max_inflight", "workers"):
-            if getattr(out, name) < 1:
-                raise ValueError(f"setting {name} must be >= 1, got {getattr(out, name)}")
-        if out.max_queue < 0:
-            raise ValueError(f"setting max_queue must be >= 0, got {out.max_queue}")
-        if out.api_key is not None and not out.api_key.strip():
-            out.api_key = None
-        return out
+    model_path: str = Field("", validation_alias=MODEL_ENV, description="contract-v1 ONNX file")
+    api_key: str | None = Field(None, repr=False, description="bearer key for every route but the probes and the "
+                                "page's static files (blank: none)")
+    max_body_bytes: int = Field(DEFAULT_MAX_BODY_BYTES, ge=1, description="whole request body, bytes")
+    max_image_pixels: int = Field(DEFAULT_MAX_IMAGE_PIXELS, ge=1, description="pixels per image, from its header")
+    intra_op_threads: int | None = Field(None, ge=1, description="onnxruntime intra-op threads per inference")
+    max_inflight: int | None = Field(None, ge=1, description="requests computing at once per worker")
+    max_queue: int = Field(DEFAULT_MAX_QUEUE, ge=0, description="requests admitted beyond those computing")
+    workers: int = Field(1, ge=1, description="uvicorn worker processes (used for the defaults)")
+    ort_spin: bool = Field(False, description="onnxruntime threads spin between runs")
+    providers: Annotated[list[str], NoDecode] = Field(["CPUExecutionProvider"], min_length=1,
+                                                     description="onnxruntime execution providers, comma-separated")
+    warmup: bool = Field(True, description="one inference before /readyz turns ready")
+    ui: bool = Field(True, description="the browser page at /ui")
+
+    @field_validator("providers", mode="before")
+    @classmethod
+    def _comma_separated(cls, value):
+        return [p.strip() for p in value.split(",") if p.strip()] if isinstance(value, str) else value
+
+    @field_validator("api_key")
+    @classmethod
+    def _blank_is_none(cls, value: str | None) -> str | None:
+        return value if value is not None and value.strip() else None
 
     @classmethod
-    def from_env(cls, environ: dict | None = None) -> "ServeSettings":
-        """Read ``OCCFLOWNET_<FIELD>`` variables; a malformed value raises ValueError naming the variable."""
-        env = os.environ if environ is None else environ
-        values: dict = {}
-        for f in fields(cls):
-            var = ENV_PREFIX + ("MODEL" if f.name == "model_path" else f.name.upper())
-            raw = env.get(var)
-            if raw is None or raw == "":
-                continue
-            try:
-                values[f.name] = _parse(f.name, raw)
-            except ValueError as exc:
-                raise ValueError(f"environment variable {var}={raw!r}: {exc}") from None
-        return cls(**values)
+    def from_env(cls, **overrides) -> ServeSettings:
+        """The settings of the environment (and ``.env``) with ``overrides`` (by field name, ``None`` = not given)
+        winning; a bad value raises SettingsError naming its variable (or, for an override, its field)."""
+        given = {k: v for k, v in overrides.items() if v is not None}
+        try:
+            return cls(**given)
+        except ValidationError as exc:
+            raise SettingsError("; ".join(_describe(e, given) for e in exc.errors())) from None
+
+    def resolved(self) -> ServeSettings:
+        """A copy with the core-dependent defaults filled in (``intra_op_threads``, ``max_inflight``)."""
+        cores_per_worker = max(1, available_cores() // self.workers)
+        threads = self.intra_op_threads or cores_per_worker
+        inflight = self.max_inflight or max(1, cores_per_worker // threads)
+        return self.model_copy(update={"intra_op_threads": threads, "max_inflight": inflight})
 
     def to_env(self) -> dict[str, str]:
         """The inverse of :meth:`from_env` for the fields that differ from ``None``."""
         env = {}
-        for f in fields(self):
-            value = getattr(self, f.name)
+        for name, value in self.model_dump().items():
             if value is None:
                 continue
-            var = ENV_PREFIX + ("MODEL" if f.name == "model_path" else f.name.upper())
             if isinstance(value, bool):
-                env[var] = "1" if value else "0"
+                value = "1" if value else "0"
             elif isinstance(value, list):
-                env[var] = ",".join(value)
-            else:
-                env[var] = str(value)
+                value = ",".join(value)
+            env[env_name(name)] = str(value)
         return env
 
 
-def _parse(name: str, raw: str):
-    if name in ("model_path", "api_key"):
-        return raw
-    if name in ("ort_spin", "warmup", "ui"):
-        low = raw.strip().lower()
-        if low in ("1", "true", "yes", "on"):
-            return True
-        if low in ("0", "false", "no", "off"):
-            return False
-        raise ValueError("expected 1/0, true/false, yes/no or on/off")
-    if name == "providers":
-        return [p.strip() for p in raw.split(",") if p.strip()]
-    return int(raw)
+def env_name(field: str) -> str:
+    """The environment variable of a :class:`ServeSettings` field."""
+    return MODEL_ENV if field == "model_path" else ENV_PREFIX + field.upper()
+
+
+def _describe(error: dict, overrides: dict) -> str:
+    field = str(error["loc"][0]) if error["loc"] else "settings"
+    field = "model_path" if field == MODEL_ENV else field
+    source = f"setting {field}" if field in overrides else env_name(field)
+    return f"{source}={error.get('input')!r}: {error['msg']}"

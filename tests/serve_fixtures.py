@@ -216,3 +216,12 @@ def stop_server(proc, timeout: float = 20.0) -> None:
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
+
+
+def metric_samples(text: str) -> dict[tuple, float]:
+    """Prometheus exposition text → {(sample name, ((label, value), ...) sorted): value} (prometheus_client's own
+    parser, so the text is checked to be valid exposition)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    return {(s.name, tuple(sorted(s.labels.items()))): s.value
+            for family in text_string_to_metric_families(text) for s in family.samples}

@@ -19,14 +19,6 @@ def test_parser_builds():
     assert "synth" in build_parser().format_help()
 
 
-def test_model_source_presets_are_the_model_presets():
-    from occflownet.commands.model_source import PRESET_NAMES
-    from occflownet.model.presets import PRESETS
-
-    assert set(PRESET_NAMES) == set(PRESETS)
-
-
-
 def test_help_runs_without_the_training_extras():
     """A serving install (no torch, scipy or numba) still starts the command line."""
     code = ("import sys; from occflownet.cli import build_parser; build_parser().format_help(); "

@@ -9,6 +9,7 @@ import pytest
 from occflownet import contract
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
 from occflownet.contract import (CalibrationError, ContractError, MissingCalibrationField, calibration_arrays,
+                                 calibration_json,
                                  check_signature, make_feeds, parse_metadata, rescale_intrinsics, scale_intrinsics,
                                  validate_calibration)
 from occflownet.rig import default_rig
@@ -87,6 +88,21 @@ def test_calibration_arrays_for_an_image_size_and_per_camera_sizes():
     np.testing.assert_allclose(K2, calibration_arrays(default_rig(480, 270))[0], rtol=1e-6, atol=1e-5)
     cal = validate_calibration(calib)
     assert cal.image_sizes == ((480, 270),) * 3 + ((960, 540),) + ((480, 270),) * 2
+
+
+def test_calibration_json_is_what_calibration_arrays_reads_back():
+    K = np.stack([np.array([[100.0 + i, 0, 40], [0, 100.0 + i, 30], [0, 0, 1]]) for i in range(6)])
+    T = np.stack([np.eye(4)] * 6)
+    T[:, 0, 3] = np.arange(6)
+    calib = calibration_json(K, T, (80, 60))
+    assert list(calib["cameras"]) == list(CAMERAS) and calib["image_size"] == [80, 60]
+    assert calib["cameras"]["CAM_FRONT_RIGHT"]["intrinsic"][0][0] == 101.0
+    K2, T2 = calibration_arrays(json.loads(json.dumps(calib)), 160, 120)
+    np.testing.assert_allclose(K2, scale_intrinsics(K, 2.0, 2.0), rtol=1e-6)
+    np.testing.assert_array_equal(T2[:, 0, 3], np.arange(6))
+    assert "image_size" not in calibration_json(K, T)
+    with pytest.raises(ValueError):                                       # one matrix per camera, no fewer
+        calibration_json(K[:5], T[:5])
 
 
 # ---------------------------------------------------------------- validation

@@ -1,4 +1,6 @@
 """Training-time occupancy-flow warp: known moves, movers, selection, clearing, gradients, batching."""
+from typing import NamedTuple
+
 import numpy as np
 import pytest
 import torch
@@ -6,10 +8,27 @@ import torch
 from occflownet.occ3d import GRID, Grid, NUM_CLASSES
 from occflownet.geometry import make_transform, rotation_z
 from occflownet.data.box_voxels import voxels_in_box
-from occflownet.render.occupancy_flow import BoxMove, PackedMoves, idw_neighbours, pack_moves, warp_volumes
+from occflownet.render.occupancy_flow import PackedMoves, idw_neighbours, warp_volumes
 
 CAR, PED = 4, 7
 CENTRE = np.array([0.2, 0.2, 1.2])  # a voxel centre, index (100, 100, 5)
+
+
+class BoxMove(NamedTuple):
+    """One box's move into one frame: voxels int [M, 3] (``voxels_in_box``), transform [4, 4] ego→ego, class."""
+
+    voxels: object
+    transform: object
+    cls: int
+
+
+def pack_moves(frames) -> PackedMoves:
+    """Per output volume n, a list of BoxMoves → PackedMoves (through ``PackedMoves.from_arrays``, as training)."""
+    moves = [(n, np.asarray(m.voxels).reshape(-1, 3), m.transform, m.cls) for n, ms in enumerate(frames) for m in ms]
+    return PackedMoves.from_arrays(
+        np.concatenate([v for _, v, _, _ in moves]) if moves else np.zeros((0, 3)),
+        np.concatenate([np.full(len(v), k) for k, (_, v, _, _) in enumerate(moves)]) if moves else np.zeros(0),
+        np.array([t for _, _, t, _ in moves]).reshape(-1, 4, 4), [c for _, _, _, c in moves], [n for n, *_ in moves])
 
 
 def _scene(blocks):

@@ -8,7 +8,8 @@
 - the packages pyproject.toml installs are the package folders of the tree;
 - README.md's tour names every package and top-level module, and every path it names exists;
 - the documentation is self-contained (no pointer to notes outside the repository);
-- each contract has one definition: the ONNX tensor names and the HTTP error body are spelled out once.
+- each contract has one definition: the ONNX tensor names and the HTTP error body are spelled out once;
+- files are written atomically one way (`occflownet.files.atomic_path`).
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ MAX_LINES = 60
 LAYERS = (
     ("core", ("occflownet", "occflownet.occ3d", "occflownet.geometry", "occflownet.rig", "occflownet.contract",
               "occflownet.pictures", "occflownet.voxel_walk", "occflownet.voxel_walk_numba", "occflownet.files",
+              "occflownet.choices", "occflownet.options",
               "occflownet.viewer")),
     ("data", ("occflownet.data",)),
     ("labels", ("occflownet.labels",)),
@@ -212,3 +214,22 @@ def test_no_hand_built_error_bodies():
             if isinstance(node, ast.Dict) and any(isinstance(k, ast.Constant) and k.value == "error"
                                                   for k in node.keys)]
     assert not hits, hits
+
+
+def test_one_atomic_write_idiom():
+    """Files appear whole through ``occflownet.files.atomic_path`` only: no other module renames a temporary file
+    into place or makes its own temporary file beside the destination."""
+    calls = re.compile(r"\b(os\.replace|os\.rename|tempfile\.mkstemp|tempfile\.NamedTemporaryFile)\(")
+    package = [p for folder in PACKAGE_DIRS.values() for p in sorted(folder.rglob("*.py"))]
+    hits = [f"{p.relative_to(REPO)}: {m.group(1)}" for p in package for m in calls.finditer(p.read_text())]
+    assert hits == ["occflownet/files.py: tempfile.mkstemp", "occflownet/files.py: os.replace"], hits
+
+
+def test_calibration_json_built_in_one_place():
+    """Calibration dicts ({"cameras": {name: {"intrinsic", "cam2ego"}}}) come from ``contract.calibration_json``:
+    no other dict literal is a calibration camera entry (the viewer's frusta, with more keys, are another format)."""
+    package = [p for folder in PACKAGE_DIRS.values() for p in sorted(folder.rglob("*.py"))]
+    hits = [str(p.relative_to(REPO)) for p in package for node in ast.walk(ast.parse(p.read_text()))
+            if isinstance(node, ast.Dict)
+            and {k.value for k in node.keys if isinstance(k, ast.Constant)} == {"intrinsic", "cam2ego"}]
+    assert hits == ["occflownet/contract/calibration.py"], hits

@@ -1,17 +1,25 @@
 """The README's main job, end to end on a very small world and budget: every stage runs and leaves its artifact."""
 import json
+import shlex
 
 import numpy as np
 
-from occflownet.cli import main
+from occflownet.cli import build_parser, main
+from occflownet.commands.train import config_from_args
+from occflownet.train.recipe import TrainConfig
 
 
 def test_quickstart_small(tmp_path, capsys):
     out = tmp_path / "qs"
     assert main(["quickstart", "--out", str(out), "--scenes", "2", "--frames", "3", "--train-minutes", "0.05",
                  "--max-steps", "2"]) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
     assert "quickstart finished" in printed and "occflownet serve --model" in printed
+    # the announced train command, run again, is the run that trained: the same train_config.json
+    announced = next(line for line in captured.err.splitlines() if line.startswith("[3/5] occflownet train "))
+    again = config_from_args(build_parser().parse_args(shlex.split(announced.split(" ", 2)[2])))
+    assert again == TrainConfig.from_dict(json.loads((out / "run" / "train_config.json").read_text()))
     result = json.loads((out / "eval.json").read_text())
     assert result["split"] == "val" and result["samples"] == 3
     assert (out / "model.onnx").is_file() and (out / "run" / "checkpoints" / "last.pt").is_file()

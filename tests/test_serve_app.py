@@ -9,7 +9,7 @@ import threading
 import cv2
 import numpy as np
 import pytest
-from serve_fixtures import (FRAME_DIR, build_fake_model, encode_image, fake_reference, image_files,
+from serve_fixtures import (FRAME_DIR, build_fake_model, encode_image, fake_reference, image_files, metric_samples,
                             real_frame_files, synthetic_images, wait_app_ready)
 from starlette.testclient import TestClient
 
@@ -266,17 +266,14 @@ def test_unknown_route_and_method_use_the_error_shape(client):
 def test_metrics_count_routes_statuses_and_stages(client):
     client.post("/v1/occupancy", files=image_files(IMAGES), headers={"Accept": "text/html"})
     assert_valid_request(client)
-    text = client.get("/metrics").text
-    assert 'occflownet_http_requests_total{route="/v1/occupancy",method="POST",status="406"}' in text
-    ok = [line for line in text.splitlines()
-          if line.startswith('occflownet_http_requests_total{route="/v1/occupancy",method="POST",status="200"}')]
-    assert ok and int(ok[0].split()[-1]) >= 1
+    samples = metric_samples(client.get("/metrics").text)
+    post = (("method", "POST"), ("route", "/v1/occupancy"))
+    assert samples[("occflownet_http_requests_total", (*post, ("status", "406")))] >= 1
+    assert samples[("occflownet_http_requests_total", (*post, ("status", "200")))] >= 1
     for stage in ("decode", "inference", "encode"):
-        count = [line for line in text.splitlines()
-                 if line.startswith(f'occflownet_stage_duration_seconds_count{{stage="{stage}"}}')]
-        assert count and int(count[0].split()[-1]) >= 1
-    assert "occflownet_http_requests_in_flight 1" in text   # the /metrics request itself
-    assert "occflownet_model_ready 1" in text
+        assert samples[("occflownet_stage_duration_seconds_count", (("stage", stage),))] >= 1
+    assert samples[("occflownet_http_requests_in_flight", ())] == 1   # the /metrics request itself
+    assert samples[("occflownet_model_ready", ())] == 1
 
 
 def test_openapi_documents_routes_parts_and_binary_responses(client):
@@ -372,3 +369,18 @@ bad = [m for m in ('torch', 'onnx', 'export', 'occflownet.model') if m in sys.mo
 assert not bad, f'serve imported {{bad}}'
 """
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_the_routes_parts_are_one_definition(client):
+    """The OpenAPI request body is written from the parts the reader allows (serve/routers/occupancy.py)."""
+    from occflownet.serve.form import openapi_request_body
+    from occflownet.serve.routers.occupancy import occupancy_parts
+
+    spec = client.get("/openapi.json").json()["paths"]["/v1/occupancy"]["post"]["requestBody"]
+    parts = occupancy_parts(CAMERAS, 1000)
+    assert spec == openapi_request_body(parts)
+    form = spec["content"]["multipart/form-data"]
+    assert form["schema"]["properties"]["CAM_FRONT"]["format"] == "binary"
+    assert "format" not in form["schema"]["properties"]["calibration"]                 # a file or a plain field
+    assert form["encoding"]["calibration"] == {"contentType": "application/json"}
+    assert parts["calibration"].limit == 1024 * 1024 and parts["CAM_BACK"].limit == 1000

@@ -14,7 +14,8 @@ import httpx
 import numpy as np
 import pytest
 import uvicorn
-from serve_fixtures import build_fake_model, free_port, image_files, stop_server, synthetic_images
+from serve_fixtures import (build_fake_model, free_port, image_files, metric_samples, stop_server,
+                            synthetic_images)
 
 from occflownet.serve.app import create_app
 from occflownet.serve.client import wait_ready
@@ -169,3 +170,49 @@ def test_cli_serves_with_workers(model_path, workers):
     finally:
         stop_server(proc)
     assert proc.returncode in (0, -15), proc.stderr.read()
+
+
+def _requests_by_worker(folder: Path) -> dict[int, float]:
+    """{worker pid: POST /v1/occupancy 200 answers} from the multiprocess metric files each worker writes."""
+    from prometheus_client.mmap_dict import MmapedDict
+
+    counts = {}
+    for path in folder.glob("counter_*.db"):
+        pid = int(path.stem.split("_")[-1])
+        counts[pid] = sum(value for key, value, *_ in MmapedDict.read_all_values_from_file(str(path))
+                          if '"occflownet_http_requests_total"' in key and '"/v1/occupancy"' in key
+                          and '"200"' in key)
+    return counts
+
+
+def test_metrics_with_two_workers_are_one_scrape(model_path, tmp_path):
+    """After requests that reached both workers, every scrape (whichever worker answers) counts all of them."""
+    folder = tmp_path / "metrics"
+    port = free_port()
+    env = os.environ | {"OCCFLOWNET_MODEL": str(model_path), "PROMETHEUS_MULTIPROC_DIR": str(folder)}
+    proc = subprocess.Popen(_serve_cmd("--port", str(port), "--workers", "2", "--threads", "1", "--no-access-log"),
+                            env=env, cwd=REPO, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    base = f"http://127.0.0.1:{port}"
+    sent = 0
+    try:
+        wait_ready(base, 60, proc)
+        headers = {"Accept": "application/octet-stream", "Connection": "close"}  # a new connection per request
+        with ThreadPoolExecutor(4) as pool:
+            while sent < 64 and sum(n > 0 for n in _requests_by_worker(folder).values()) < 2:
+                answers = list(pool.map(lambda _: httpx.post(f"{base}/v1/occupancy", files=image_files(IMAGES),
+                                                             headers=headers, timeout=30).status_code, range(8)))
+                assert answers == [200] * 8
+                sent += 8
+        by_worker = _requests_by_worker(folder)
+        assert len([n for n in by_worker.values() if n > 0]) == 2, by_worker   # both workers answered some
+        for _ in range(6):                                                      # scrapes reach either worker
+            samples = metric_samples(httpx.get(f"{base}/metrics", headers={"Connection": "close"}, timeout=5).text)
+            post = (("method", "POST"), ("route", "/v1/occupancy"), ("status", "200"))
+            assert samples[("occflownet_http_requests_total", post)] == sent
+            inference = samples[("occflownet_stage_duration_seconds_count", (("stage", "inference"),))]
+            assert inference == sent                                            # (warm-ups are not observed)
+            assert samples[("occflownet_model_ready", ())] == 1
+    finally:
+        stop_server(proc)
+    assert proc.returncode in (0, -15), proc.stderr.read()
+    assert folder.is_dir() and not list(folder.glob("*.db"))                   # emptied when the server ended

@@ -3,13 +3,15 @@ the ready-wait helper."""
 import asyncio
 import io
 import json
+import os
 import struct
 import threading
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from serve_fixtures import FRAME_DIR, encode_image, fake_metadata, synthetic_images
+from serve_fixtures import FRAME_DIR, encode_image, fake_metadata, metric_samples, synthetic_images
 
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, FREE
 from occflownet.rig import default_rig
@@ -22,7 +24,9 @@ from occflownet.pictures import top_down
 from occflownet.serve.encode import NotAcceptable, encode, negotiate
 from occflownet.serve.limits import BodySizeLimitMiddleware, InferenceGate, Saturated
 from occflownet.serve.metrics import Metrics
-from occflownet.serve.settings import ServeSettings
+from occflownet.serve.settings import DEFAULT_MAX_QUEUE, ServeSettings, SettingsError, env_name
+
+REPO = Path(__file__).resolve().parents[1]
 
 RGB = synthetic_images((64, 36))[0]
 
@@ -254,28 +258,87 @@ def test_metrics_exposition_counts_and_histograms():
     m.request_finished("/v1/occupancy", "POST", 200, 0.07)
     m.observe_stage("inference", 0.05)
     m.observe_stage("inference", 2.0)
-    text = m.render()
-    assert 'occflownet_http_requests_total{route="/v1/occupancy",method="POST",status="200"} 1' in text
-    assert 'occflownet_stage_duration_seconds_bucket{stage="inference",le="0.05"} 1' in text
-    assert 'occflownet_stage_duration_seconds_bucket{stage="inference",le="2.5"} 2' in text
-    assert 'occflownet_stage_duration_seconds_count{stage="inference"} 2' in text
-    assert "occflownet_http_requests_in_flight 0" in text
-    for line in text.splitlines():  # every sample line is "name{labels} number"
-        if not line.startswith("#"):
-            float(line.rsplit(" ", 1)[1])
+    m.reject("saturated")
+    m.set_gate(3, 1)
+    samples = metric_samples(m.render().decode())
+    assert samples[("occflownet_http_requests_total",
+                    (("method", "POST"), ("route", "/v1/occupancy"), ("status", "200")))] == 1
+    assert samples[("occflownet_stage_duration_seconds_bucket", (("le", "0.05"), ("stage", "inference")))] == 1
+    assert samples[("occflownet_stage_duration_seconds_bucket", (("le", "2.5"), ("stage", "inference")))] == 2
+    assert samples[("occflownet_stage_duration_seconds_count", (("stage", "inference"),))] == 2
+    assert samples[("occflownet_stage_duration_seconds_count", (("stage", "decode"),))] == 0     # every stage listed
+    assert samples[("occflownet_rejected_total", (("reason", "saturated"),))] == 1
+    assert samples[("occflownet_rejected_total", (("reason", "not_ready"),))] == 0
+    assert samples[("occflownet_http_requests_in_flight", ())] == 0
+    assert samples[("occflownet_inference_queue_depth", ())] == 3 and samples[("occflownet_inferences_running", ())] == 1
+    assert samples[("occflownet_model_ready", ())] == 0
+    m.set_ready()
+    assert metric_samples(m.render().decode())[("occflownet_model_ready", ())] == 1
+    assert not [name for name, _ in samples if name.endswith("_created")]
 
 
-def test_settings_from_env_and_resolution():
-    s = ServeSettings.from_env({"OCCFLOWNET_MODEL": "m.onnx", "OCCFLOWNET_MAX_QUEUE": "7", "OCCFLOWNET_WARMUP": "0",
-                                "OCCFLOWNET_INTRA_OP_THREADS": "1", "OCCFLOWNET_PROVIDERS": "A, B"})
-    assert (s.model_path, s.max_queue, s.warmup, s.providers) == ("m.onnx", 7, False, ["A", "B"])
+def test_multiprocess_dir_is_made_for_the_workers_and_removed(monkeypatch, tmp_path):
+    from occflownet.serve.metrics import MULTIPROC_ENV, multiprocess_dir
+
+    monkeypatch.delenv(MULTIPROC_ENV, raising=False)
+    with multiprocess_dir() as folder:
+        assert os.environ[MULTIPROC_ENV] == str(folder) and folder.is_dir()
+        (folder / "counter_123.db").write_bytes(b"x")
+    assert not folder.exists() and MULTIPROC_ENV not in os.environ
+    given = tmp_path / "metrics"                                # the user's folder: kept, emptied of old files
+    given.mkdir()
+    (given / "counter_1.db").write_bytes(b"old")
+    monkeypatch.setenv(MULTIPROC_ENV, str(given))
+    with multiprocess_dir() as folder:
+        assert folder == given and not list(given.glob("*.db"))
+        (folder / "gauge_livesum_7.db").write_bytes(b"x")
+    assert given.is_dir() and not list(given.glob("*.db")) and os.environ[MULTIPROC_ENV] == str(given)
+
+
+def test_settings_from_env_and_resolution(monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)                                 # no .env of the repository
+    env = {"OCCFLOWNET_MODEL": "m.onnx", "OCCFLOWNET_MAX_QUEUE": "7", "OCCFLOWNET_WARMUP": "0",
+           "OCCFLOWNET_INTRA_OP_THREADS": "1", "OCCFLOWNET_PROVIDERS": "A, B", "OCCFLOWNET_API_KEY": " "}
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    s = ServeSettings.from_env()
+    assert (s.model_path, s.max_queue, s.warmup, s.providers, s.api_key) == ("m.onnx", 7, False, ["A", "B"], None)
+    assert ServeSettings.from_env(max_queue=2, model_path="other.onnx").max_queue == 2     # the command line wins
     r = s.resolved()
     assert r.intra_op_threads == 1 and r.max_inflight >= 1
-    assert ServeSettings.from_env(r.to_env()).resolved() == r
-    with pytest.raises(ValueError, match="OCCFLOWNET_MAX_QUEUE"):
-        ServeSettings.from_env({"OCCFLOWNET_MAX_QUEUE": "many"})
+    for k, v in r.to_env().items():
+        monkeypatch.setenv(k, v)
+    assert ServeSettings.from_env().resolved() == r
+    monkeypatch.setenv("OCCFLOWNET_MAX_QUEUE", "many")
+    with pytest.raises(SettingsError, match="OCCFLOWNET_MAX_QUEUE='many': Input should be a valid integer"):
+        ServeSettings.from_env()
+    monkeypatch.setenv("OCCFLOWNET_MAX_QUEUE", "")                  # empty = unset: the default
+    assert ServeSettings.from_env().max_queue == DEFAULT_MAX_QUEUE
+    monkeypatch.setenv("OCCFLOWNET_UI", "perhaps")
+    with pytest.raises(SettingsError, match="OCCFLOWNET_UI='perhaps'"):
+        ServeSettings.from_env()
+    monkeypatch.delenv("OCCFLOWNET_UI")
+    with pytest.raises(SettingsError, match="setting max_inflight=-1: .*greater than or equal to 1"):
+        ServeSettings.from_env(max_inflight=-1)
     with pytest.raises(ValueError, match="max_inflight"):
-        ServeSettings(max_inflight=-1).resolved()
+        ServeSettings(max_inflight=-1)
+
+
+def test_settings_read_a_dotenv_file(monkeypatch, tmp_path):
+    for name in ServeSettings.model_fields:
+        monkeypatch.delenv(env_name(name), raising=False)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / ".env").write_text("OCCFLOWNET_MODEL=/models/from-dotenv.onnx\nOCCFLOWNET_MAX_QUEUE=9\nOTHER=1\n")
+    s = ServeSettings.from_env()
+    assert (s.model_path, s.max_queue) == ("/models/from-dotenv.onnx", 9)
+    monkeypatch.setenv("OCCFLOWNET_MAX_QUEUE", "3")                  # the environment wins over the file
+    assert ServeSettings.from_env().max_queue == 3
+
+
+def test_every_setting_is_documented():
+    doc = (REPO / "docs" / "serve.md").read_text()
+    for name, info in ServeSettings.model_fields.items():
+        assert info.description and f"`{env_name(name)}" in doc, name
 
 
 def test_fake_model_metadata_follows_the_contract():

@@ -24,6 +24,19 @@ def _weights(ckpt):
     return payload["extra"]["train"]["model"], payload["state_dict"]
 
 
+def test_step_work_counts_what_the_supervision_uses():
+    from occflownet.train.loop import step_work
+    from occflownet.train.recipe import TrainConfig
+
+    mask = torch.zeros(2, 200, 200, 16, dtype=torch.bool)
+    mask[0, :10] = True                                                     # 10 * 200 * 16 = 32,000 voxels
+    batch = {"ray_depths": torch.zeros(3000), "occ_semantics": torch.zeros(2, 200, 200, 16), "occ_mask": mask}
+    assert step_work(batch, TrainConfig(supervision="2d")) == {"rays": 3000}
+    assert step_work(batch, TrainConfig(supervision="3d")) == {"voxels": 1_280_000}
+    assert step_work(batch, TrainConfig(supervision="3d", voxel_mask=True)) == {"voxels": 32_000}
+    assert step_work(batch, TrainConfig(supervision="2d+3d")) == {"rays": 3000, "voxels": 1_280_000}
+
+
 def test_sampler_is_a_function_of_the_step_and_shards_ranks():
     a = StepBatchSampler(10, 2, seed=3, start_step=0, max_steps=12, rank=0, world_size=2)
     b = StepBatchSampler(10, 2, seed=3, start_step=0, max_steps=12, rank=1, world_size=2)
@@ -150,5 +163,6 @@ def test_free_space_beams_and_unmasked_voxel_losses_train(prepared_synth_root, t
                             "--free-space", "--free-rays-per-step", "256", "--head-init", "official")) == 0
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert {"free_space", "voxel_density", "render_depth"} <= set(log[0]) and log[0]["free_space"] > 0
+    assert log[0]["rays_per_s"] > 0 and log[0]["voxels_per_s"] > 0        # what the step supervised, per second
     config = json.loads((out / "train_config.json").read_text())
     assert config["free_space"] and not config["voxel_mask"] and config["head_init"] == "official"

@@ -2,9 +2,7 @@
 `predict`) an exported ONNX file."""
 import argparse
 
-# The preset names of occflownet/model/presets.py (PRESETS), spelled out so that building the parser imports no
-# torch (tests/test_cli.py checks they agree).
-PRESET_NAMES = ("tiny", "base", "paper")
+from occflownet.choices import PRESET_NAMES
 
 
 def add_model_source(parser: argparse.ArgumentParser, onnx: bool = False) -> None:

@@ -5,23 +5,15 @@ announced as its ``occflownet ...`` command); this module parses the options and
 """
 import argparse
 
+from occflownet.options import add_options, config_kwargs
+from occflownet.quickstart import QuickstartConfig
+
 HELP = "synthetic world -> train tiny (bounded time) -> eval -> export, on the embedded defaults"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", default="quickstart", help="folder for the world, the run and the model")
-    p.add_argument("--scenes", type=int, default=3, help="synthetic scenes (the last one is the val split)")
-    p.add_argument("--frames", type=int, default=16, help="keyframes per scene")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--train-minutes", type=float, default=7.0, help="training time budget")
-    p.add_argument("--max-steps", type=int, default=1000, help="step cap (about the time budget on a 2-core CPU)")
-    p.add_argument("--voxel-mask", action=argparse.BooleanOptionalAction, default=True,
-                   help="3D voxel losses only inside mask_camera (train --voxel-mask; default on: the quickest "
-                        "recipe measured, docs/training.md)")
-    p.add_argument("--supervision", default="3d", choices=["2d", "3d", "2d+3d"],
-                   help="default 3d: within minutes on a CPU, 3D labels inside the camera mask give the model "
-                        "closest to the street of the recipes measured; 2d needs a far longer budget "
-                        "(docs/ablation.md, docs/training.md)")
+    """The fields of QuickstartConfig (occflownet/options.py)."""
+    add_options(p, QuickstartConfig)
 
 
 def run(args) -> int:
@@ -29,12 +21,10 @@ def run(args) -> int:
 
     from occflownet.data.tables import DatasetError
     from occflownet.export.onnx_export import ExportError
-    from occflownet.quickstart import QuickstartConfig, run_quickstart
+    from occflownet.quickstart import run_quickstart
     from occflownet.train.loop import TrainingError
 
-    cfg = QuickstartConfig(out=args.out, scenes=args.scenes, frames=args.frames, seed=args.seed,
-                           train_minutes=args.train_minutes, max_steps=args.max_steps,
-                           supervision=args.supervision, voxel_mask=args.voxel_mask)
+    cfg = QuickstartConfig(**config_kwargs(args, QuickstartConfig))
     try:
         done = run_quickstart(cfg)
     except (DatasetError, TrainingError, ExportError, FileNotFoundError, FileExistsError, ValueError, OSError) as e:

@@ -1,7 +1,9 @@
 """`occflownet serve`: serve an exported ONNX model over HTTP (FastAPI + uvicorn + onnxruntime, no torch).
 
-Options left unset fall back to the ``OCCFLOWNET_*`` environment variables (see serve/settings.py), then to the
-defaults. The model is checked before uvicorn starts, so a missing or invalid file ends the command with a message
+Options left unset fall back to the ``OCCFLOWNET_*`` environment variables and a ``.env`` file (see
+serve/settings.py), then to the defaults. With ``--workers N`` the settings reach the workers through the
+environment, and their metrics are kept in one ``PROMETHEUS_MULTIPROC_DIR`` folder (made and removed here) so that
+``/metrics`` answers for all of them. The model is checked before uvicorn starts, so a missing or invalid file ends the command with a message
 naming it (exit status 2). The API key is read from ``OCCFLOWNET_API_KEY`` only (never a command-line argument,
 which other users could read from the process list).
 """
@@ -33,21 +35,14 @@ def add_arguments(parser):
 
 
 def _settings(args):
+    """The options given, over the environment (``ServeSettings.from_env``: a bad value raises SettingsError)."""
     from occflownet.serve.settings import ServeSettings
 
-    settings = ServeSettings.from_env()
-    if args.model:
-        settings.model_path = args.model
-    for name in ("workers", "intra_op_threads", "max_inflight", "max_queue", "max_image_pixels"):
-        if getattr(args, name) is not None:
-            setattr(settings, name, getattr(args, name))
-    if args.max_body_mb is not None:
-        settings.max_body_bytes = int(args.max_body_mb * 1024 * 1024)
-    if args.no_warmup:
-        settings.warmup = False
-    if args.no_ui:
-        settings.ui = False
-    return settings
+    body = None if args.max_body_mb is None else int(args.max_body_mb * 1024 * 1024)
+    return ServeSettings.from_env(model_path=args.model, workers=args.workers, intra_op_threads=args.intra_op_threads,
+                                  max_inflight=args.max_inflight, max_queue=args.max_queue,
+                                  max_image_pixels=args.max_image_pixels, max_body_bytes=body,
+                                  warmup=False if args.no_warmup else None, ui=False if args.no_ui else None)
 
 
 def run(args) -> int:
@@ -67,6 +62,7 @@ def run(args) -> int:
     import uvicorn
 
     from occflownet.serve.app import create_app
+    from occflownet.serve.metrics import multiprocess_dir
     from occflownet.serve.model_runtime import ModelLoadError, ModelRuntime
 
     try:
@@ -84,7 +80,9 @@ def run(args) -> int:
         else:
             del runtime  # each worker process loads its own session from the environment
             os.environ.update(settings.to_env())
-            uvicorn.run("occflownet.serve.app:create_app_from_env", factory=True, workers=resolved.workers, **common)
+            with multiprocess_dir():  # one metrics folder for the workers: /metrics answers for all of them
+                uvicorn.run("occflownet.serve.app:create_app_from_env", factory=True, workers=resolved.workers,
+                            **common)
     except SystemExit as exc:  # uvicorn exits 3 when start-up fails (e.g. the port is taken)
         return int(exc.code or 0)
     return 0

@@ -44,6 +44,7 @@ model's own preprocessing): an image resized by (sx, sy) = (w'/w, h'/h) has ``f'
 from __future__ import annotations
 from occflownet.contract.calibration import (ASPECT_TOLERANCE, ORTHONORMAL_TOLERANCE, SINGULAR_TOLERANCE, Calibration,
                                              CalibrationError, MissingCalibrationField, calibration_arrays,
+                                             calibration_json,
                                              load_calibration, parse_calibration_json, rescale_intrinsics,
                                              resize_matrix, scale_intrinsics, validate_calibration)
 from occflownet.contract.images import decode_rgb
@@ -55,7 +56,7 @@ from occflownet.contract.tensors import (CONTRACT_VERSION, INPUT_NAMES, INPUTS, 
 
 __all__ = [
     "ASPECT_TOLERANCE", "ORTHONORMAL_TOLERANCE", "SINGULAR_TOLERANCE", "Calibration", "CalibrationError",
-    "MissingCalibrationField", "calibration_arrays", "load_calibration", "parse_calibration_json",
+    "MissingCalibrationField", "calibration_arrays", "calibration_json", "load_calibration", "parse_calibration_json",
     "rescale_intrinsics", "resize_matrix", "scale_intrinsics", "validate_calibration",
     "decode_rgb", "METADATA_KEYS", "REQUIRED_METADATA_KEYS", "ModelMetadata", "decode_metadata", "encode_metadata",
     "parse_metadata", "check_session", "create_session", "run_session",

@@ -173,6 +173,17 @@ def rescale_intrinsics(K: np.ndarray, from_size: tuple[int, int] | None, to_size
     return scale_intrinsics(K, w / W, h / H)
 
 
+def calibration_json(intrinsics, cam2ego, image_size: Sequence[int] | None = None,
+                     cameras: Sequence[str] = CAMERAS) -> dict:
+    """The calibration JSON (docs/contracts.md) of intrinsics [V, 3, 3] and cam2ego [V, 4, 4] in ``cameras`` order,
+    with the top-level ``image_size`` [w, h] when given: what :func:`calibration_arrays` reads back."""
+    calib = {"cameras": {cam: {"intrinsic": np.asarray(K).tolist(), "cam2ego": np.asarray(T).tolist()}
+                         for cam, K, T in zip(cameras, intrinsics, cam2ego, strict=True)}}
+    if image_size is not None:
+        calib["image_size"] = [int(v) for v in image_size]
+    return calib
+
+
 def calibration_arrays(calib: Mapping, width: int | None = None, height: int | None = None,
                        cameras: Sequence[str] = CAMERAS, source: str = "the calibration"
                        ) -> tuple[np.ndarray, np.ndarray]:

@@ -22,6 +22,7 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 
 from ..occ3d import DYNAMIC_CLASSES, GRID, Grid, category_to_occ3d
+from ..files import atomic_path
 from ..geometry import invert, make_transform, matrix_to_quaternion
 from .box_voxels import MARGIN_ADD, MARGIN_SCALE, voxels_in_box
 
@@ -308,10 +309,8 @@ def precompute_flow(index, dataroot, horizon: int = 3, progress: bool = False, w
     else:
         records = [keyframe_flow(index, p, horizon) for p in tqdm(positions, **bar)]
     path = flow_path(dataroot, index.version)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.npz")
-    save_flow_records(tmp, records)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        save_flow_records(tmp, records)
     path.with_suffix(".json").write_text(json.dumps({"horizon": int(horizon), "format_version": FLOW_FORMAT_VERSION,
                                                      "keyframes": len(records)}))
     return path

@@ -12,12 +12,12 @@ and in time order, so temporal neighbours are positions ``i + t`` inside the sce
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 
 from occflownet import __version__
+from occflownet.files import atomic_path
 from occflownet.occ3d import CAMERAS
 from occflownet.data.records import Boxes, CameraRecord, LidarRecord, SampleRecord
 from occflownet.data.tables import OPTIONAL_TABLES, REQUIRED_TABLES, DatasetError, resolve_version
@@ -166,22 +166,16 @@ def index_dir(dataroot, version: str) -> Path:
     return Path(dataroot) / INDEX_DIRNAME / version
 
 
-def _atomic_write(path: Path, write) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        write(f)
-    os.replace(tmp, path)
-
-
 def save_index(index: SampleIndex, dataroot) -> Path:
     """Write ``index.npz`` and ``index.json`` (atomically, each) under ``index_dir``; returns that directory."""
     out = index_dir(dataroot, index.version)
-    out.mkdir(parents=True, exist_ok=True)
-    _atomic_write(out / "index.npz", lambda f: np.savez(f, **index.arrays))
+    with atomic_path(out / "index.npz") as tmp:
+        np.savez(tmp, **index.arrays)
     meta = {**index.meta, "format_version": FORMAT_VERSION, "package_version": __version__,
             "version": index.version, "num_samples": len(index), "num_scenes": len(index.scene_names),
             "splits": index.splits}
-    _atomic_write(out / "index.json", lambda f: f.write((json.dumps(meta, indent=1) + "\n").encode()))
+    with atomic_path(out / "index.json") as tmp:
+        tmp.write_text(json.dumps(meta, indent=1) + "\n")
     return out
 
 

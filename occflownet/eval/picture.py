@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occflownet.contract import calibration_json
 from occflownet.occ3d import CLASS_COLORS, FREE, GRID
 from occflownet.eval.ray_iou import first_hits
 from occflownet.pictures import class_legend, top_down
@@ -90,9 +91,7 @@ def sample_viewer(dataroot, sample, prediction: np.ndarray, path) -> Path:
 
     dataroot = Path(dataroot)
     labels = load_occupancy(dataroot, sample.occupancy_path)
-    cam2ego = sample.cam2current_ego()
-    calib = {"cameras": {c.name: {"intrinsic": np.asarray(c.intrinsic).tolist(), "cam2ego": cam2ego[i].tolist()}
-                         for i, c in enumerate(sample.cameras)}}
+    calib = calibration_json(sample.intrinsics, sample.cam2current_ego())
     images = {c.name: (dataroot / c.path).read_bytes() for c in sample.cameras}
     grids = [viewer.ViewGrid("ground truth", labels.semantics, labels.mask_camera),
              viewer.ViewGrid("prediction", prediction)]

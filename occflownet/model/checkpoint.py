@@ -5,13 +5,12 @@ tensors, numbers, strings, booleans and None (e.g. optimizer state dicts, step c
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import torch
 
 from occflownet import __version__
+from occflownet.files import atomic_path
 from occflownet.model.presets import ModelConfig
 from occflownet.model.occupancy_model import OccupancyModel
 
@@ -21,26 +20,16 @@ class CheckpointError(ValueError):
 
 
 def save_checkpoint(path, model: OccupancyModel, cfg: ModelConfig, extra: dict | None = None) -> Path:
-    """Write ``model``'s weights and ``cfg`` to ``path`` atomically (temp file in the same folder + os.replace)."""
+    """Write ``model``'s weights and ``cfg`` to ``path`` atomically and durably (``files.atomic_path``, fsync)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
         "config": cfg.to_dict(),
         "occflownet_version": __version__,
         "extra": dict(extra or {}),
     }
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path, fsync=True) as tmp:
+        torch.save(payload, tmp)
     return path
 
 

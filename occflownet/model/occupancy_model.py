@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from occflownet.contract import NUM_CAMERAS
 from occflownet.occ3d import FREE
 from occflownet.model.backbone import ResNet
 from occflownet.model.presets import FEATURE_STRIDE, ModelConfig
@@ -18,8 +19,6 @@ from occflownet.model.decoder import VoxelDecoder, unblock
 from occflownet.model.lift import DepthContextHead, LiftSplat
 from occflownet.model.neck import Stride16Neck
 from occflownet.model.preprocess import preprocess_images, scale_intrinsics_to_features
-
-NUM_CAMERAS = 6
 
 
 def fuse_occupancy(density: torch.Tensor, logits: torch.Tensor, threshold: float) -> torch.Tensor:

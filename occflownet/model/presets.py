@@ -16,10 +16,10 @@ from __future__ import annotations
 import copy
 from dataclasses import asdict, dataclass, field, fields, replace
 
+from occflownet.choices import HEAD_INITS
 from occflownet.occ3d import GRID
 from occflownet.rig import default_rig
 
-HEAD_INITS = ("prior", "official")  # σ/semantic head initialisations (decoder.VoxelDecoder)
 
 # The synthetic world's default camera image size (width, height); the default calibration is for this size.
 DEFAULT_IMAGE_SIZE = (480, 270)
@@ -132,6 +132,7 @@ class ModelConfig:
         return cls(**d)
 
 
+# One preset per name of occflownet.choices.PRESET_NAMES (tests/test_choices.py).
 PRESETS: dict[str, ModelConfig] = {
     # CPU preset: trains on two cores in minutes; reduced-resolution trunk (50x50x4) + full-res skip and heads.
     "tiny": ModelConfig(preset="tiny"),

@@ -29,15 +29,16 @@ differentiable with respect to σ and logits: gradients flow from the warped cop
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, NamedTuple, Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 import torch
 
+from ..choices import FLOW_MOVERS
 from ..occ3d import GRID, Grid
 
-Mover = Literal["idw", "nearest"]
-MOVERS: tuple[str, ...] = ("idw", "nearest")
+Mover = str  # one of MOVERS
+MOVERS = FLOW_MOVERS
 SNAP_DISTANCE = 1e-4  # metres: an IDW target this close to a voxel centre goes wholly to that centre
 
 # Offsets of the 8 neighbouring voxel centres around a point, relative to the floor corner.
@@ -49,22 +50,9 @@ def _tensor(x, dtype) -> torch.Tensor:
     return x.to(dtype) if torch.is_tensor(x) else torch.as_tensor(np.asarray(x), dtype=dtype)
 
 
-class BoxMove(NamedTuple):
-    """One dynamic box's move into one temporal frame.
-
-    voxels: int [M, 3] voxel indices (i, j, k) of the enlarged box at time 0 (from ``voxels_in_box``);
-    transform: float [4, 4], ego→ego in the current keyframe's ego frame, maps points of the box at time 0 to
-    their place at time t (T_box(t) · T_box(0)⁻¹); cls: Occ3D class of the box.
-    """
-
-    voxels: object
-    transform: object
-    cls: int
-
-
 @dataclass
 class PackedMoves:
-    """All box moves of a batch, concatenated (build with ``pack_moves`` / ``PackedMoves.from_arrays``).
+    """All box moves of a batch, concatenated (build with ``PackedMoves.from_arrays``).
 
     voxels long [M, 3] (voxel indices), box long [M] (row of each voxel's move), transforms float [K, 4, 4]
     (ego→ego of the current keyframe), classes long [K], volume long [K] (which output volume each move writes).
@@ -109,38 +97,13 @@ class PackedMoves:
         if len(parts) != len(volume_offsets):
             raise ValueError("PackedMoves.concat: one volume offset per part")
         if not parts:
-            return pack_moves([])
+            return PackedMoves.from_arrays(*(np.zeros(shape) for shape in ((0, 3), 0, (0, 4, 4), 0, 0)))
         box_offsets = np.cumsum([0] + [p.num_moves for p in parts[:-1]])
         return PackedMoves(torch.cat([p.voxels for p in parts]),
                            torch.cat([p.box + int(o) for p, o in zip(parts, box_offsets)]),
                            torch.cat([p.transforms for p in parts]),
                            torch.cat([p.classes for p in parts]),
                            torch.cat([p.volume + int(o) for p, o in zip(parts, volume_offsets)]))
-
-
-def pack_moves(frames: Sequence[Sequence[BoxMove]]) -> PackedMoves:
-    """Per output volume n, a list of box moves (``BoxMove`` or (voxels, transform, cls) tuples) → PackedMoves."""
-    voxels, box, transforms, classes, volume = [], [], [], [], []
-    for n, moves in enumerate(frames):
-        for move in moves:
-            vox, transform, cls = move
-            vox = _tensor(vox, torch.long)
-            if vox.ndim != 2 or vox.shape[1] != 3:
-                raise ValueError(f"box move voxels must be [M, 3], got {tuple(vox.shape)}")
-            transform = _tensor(transform, torch.float64)
-            if transform.shape != (4, 4):
-                raise ValueError(f"box move transform must be [4, 4], got {tuple(transform.shape)}")
-            box.append(torch.full((vox.shape[0],), len(transforms), dtype=torch.long))
-            voxels.append(vox.cpu())
-            transforms.append(transform.cpu())
-            classes.append(int(cls))
-            volume.append(n)
-    if not transforms:
-        return PackedMoves(torch.zeros(0, 3, dtype=torch.long), torch.zeros(0, dtype=torch.long),
-                           torch.zeros(0, 4, 4, dtype=torch.float64), torch.zeros(0, dtype=torch.long),
-                           torch.zeros(0, dtype=torch.long))
-    return PackedMoves(torch.cat(voxels), torch.cat(box), torch.stack(transforms),
-                       torch.tensor(classes, dtype=torch.long), torch.tensor(volume, dtype=torch.long))
 
 
 def idw_neighbours(points: torch.Tensor, grid: Grid = GRID) -> tuple[torch.Tensor, torch.Tensor]:

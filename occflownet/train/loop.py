@@ -19,6 +19,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
+from occflownet.contract import calibration_json
 from occflownet.data.index import load_index
 from occflownet.model import get_preset
 from occflownet.model.presets import ModelConfig
@@ -117,9 +118,7 @@ def _model_config(cfg: TrainConfig, index, positions):
     """The preset's ModelConfig with τ for this supervision and the training rig as default calibration."""
     model_cfg = get_preset(cfg.preset)
     sample = index[int(positions[0])]
-    calib = {"cameras": {c.name: {"intrinsic": c.intrinsic.tolist(), "cam2ego": c.sensor2ego.tolist()}
-                         for c in sample.cameras},
-             "image_size": [int(sample.cameras[0].width), int(sample.cameras[0].height)]}
+    calib = calibration_json(sample.intrinsics, sample.cam2ego, sample.image_sizes[0])
     head_init = cfg.head_init or model_cfg.head_init
     return replace(model_cfg, threshold=cfg.resolved_threshold(), default_calibration=calib, head_init=head_init)
 
@@ -183,7 +182,7 @@ def _run_steps(state: TrainingState, net, losses: LossComputer, loader: Iterable
     for batch in loader:
         generator = torch.Generator(device=device).manual_seed(cfg.seed * 1_000_003 + state.step * 101 + info.rank)
         terms, grad_norm = train_step(state, net, losses, batch, device, generator, amp_dtype)
-        monitor.after_step(state.step, terms, grad_norm, state.scheduler.get_last_lr()[0], _ray_count(batch))
+        monitor.after_step(state.step, terms, grad_norm, state.scheduler.get_last_lr()[0], step_work(batch, cfg))
         out_of_time = _out_of_time(cfg, t_start, info, device)
         if info.is_main and (_checkpoint_due(cfg, state.step) or out_of_time):
             state.save(ckpt_path)
@@ -216,8 +215,15 @@ def train_step(state: TrainingState, net, losses: LossComputer, batch: dict, dev
     return terms, grad_norm
 
 
-def _ray_count(batch: dict) -> int:
-    return int(batch["ray_depths"].numel()) if "ray_depths" in batch else 0
+def step_work(batch: dict, cfg: TrainConfig) -> dict[str, int]:
+    """What one step of this process supervises, by the run's supervision: {"rays": LiDAR rays rendered} with 2D
+    supervision, {"voxels": labelled voxels in the 3D loss (inside mask_camera with ``voxel_mask``)} with 3D."""
+    work = {}
+    if cfg.uses_2d:
+        work["rays"] = int(batch["ray_depths"].numel())
+    if cfg.uses_3d:
+        work["voxels"] = int(batch["occ_mask"].sum() if cfg.voxel_mask else batch["occ_semantics"].numel())
+    return work
 
 
 # --- stop conditions and the end --------------------------------------------------------------------------------------
@@ -289,20 +295,25 @@ class _Monitor:
 
             self.bar = tqdm(total=cfg.max_steps, initial=start_step, desc="train", unit="step", file=sys.stderr,
                             dynamic_ncols=True)
-        self.t_log, self.rays_since_log = time.monotonic(), 0
+        self.t_log, self.work_since_log = time.monotonic(), {}
 
-    def after_step(self, step: int, terms: dict, grad_norm: torch.Tensor, lr: float, rays: int) -> None:
-        """Record step ``step`` (counted after the update): loss terms, lr, grad norm, rays/s over all ranks."""
-        self.rays_since_log += rays
+    def after_step(self, step: int, terms: dict, grad_norm: torch.Tensor, lr: float, work: dict[str, int]) -> None:
+        """Record step ``step`` (counted after the update): loss terms, lr, grad norm, and per second over all ranks
+        what the steps supervised (``work``, :func:`step_work`: ``rays_per_s`` and/or ``voxels_per_s``); the bar
+        shows the loss and those rates (tqdm adds steps/s)."""
+        for key, n in work.items():
+            self.work_since_log[key] = self.work_since_log.get(key, 0) + n
         if self.logger.enabled and (step % self.cfg.log_every == 0 or step == self.cfg.max_steps):
             now = time.monotonic()
+            rates = {f"{key}_per_s": n * self.world_size / max(now - self.t_log, 1e-9)
+                     for key, n in self.work_since_log.items()}
             record = {k: float(v.detach()) for k, v in terms.items()}
-            record.update(lr=lr, grad_norm=float(grad_norm),
-                          rays_per_s=self.rays_since_log * self.world_size / max(now - self.t_log, 1e-9))
+            record.update(lr=lr, grad_norm=float(grad_norm), **rates)
             self.logger.log(step, record)
-            self.t_log, self.rays_since_log = now, 0
+            self.t_log, self.work_since_log = now, {}
             if self.bar is not None:
-                self.bar.set_postfix(loss=f"{record['loss']:.3f}", rays_s=f"{record['rays_per_s']:.0f}")
+                self.bar.set_postfix(loss=f"{record['loss']:.3f}",
+                                     **{key.replace("_per_s", "_s"): f"{v:.0f}" for key, v in rates.items()})
         if self.bar is not None:
             self.bar.update(1)
 

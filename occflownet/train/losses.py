@@ -27,9 +27,10 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from occflownet.choices import SUPERVISION_MODES
 from occflownet.occ3d import FREE, NUM_CLASSES
 
-MODES = ("2d", "3d", "2d+3d")
+MODES = SUPERVISION_MODES
 
 
 @dataclass(frozen=True)
@@ -89,15 +90,11 @@ def render_losses(depth: torch.Tensor, semantics: torch.Tensor, depth_gt: torch.
 
 
 def ray_losses(rendered, depth_gt: torch.Tensor, labels_gt: torch.Tensor, class_weights: torch.Tensor | None = None,
-               cfg: LossConfig = LossConfig(), depth: bool = True) -> dict[str, torch.Tensor]:
-    """Weighted rendering terms {"render_depth": depth_weight · MSE (only when ``depth``), "render_semantics":
-    semantic_weight · CE} for ``rendered`` (a ``RenderOutput``: depth [R], semantics [R, 17]); see
-    ``render_losses``."""
+               cfg: LossConfig = LossConfig()) -> dict[str, torch.Tensor]:
+    """Weighted rendering terms {"render_depth": depth_weight · MSE, "render_semantics": semantic_weight · CE} for
+    ``rendered`` (a ``RenderOutput``: depth [R], semantics [R, 17]); see ``render_losses``."""
     r = render_losses(rendered.depth, rendered.semantics, depth_gt, labels_gt, class_weights)
-    terms = {"render_semantics": cfg.semantic_weight * r["semantics"]}
-    if depth:
-        terms = {"render_depth": cfg.depth_weight * r["depth"], **terms}
-    return terms
+    return {"render_depth": cfg.depth_weight * r["depth"], "render_semantics": cfg.semantic_weight * r["semantics"]}
 
 
 def free_space_loss(opacity: torch.Tensor) -> torch.Tensor:

@@ -1,18 +1,22 @@
-"""Training configuration: one typed dataclass and the per-preset recipes; `occflownet train` maps its options
-onto the fields, so ``TrainConfig(preset=p, ...)`` from Python is the same run as ``occflownet train --preset p``."""
+"""Training configuration: one typed dataclass and the per-preset recipes. `occflownet train` derives its options
+from the fields (``occflownet/options.py``: name, default, help, choices), so ``TrainConfig(preset=p, ...)`` from
+Python is the same run as ``occflownet train --preset p ...``."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-SUPERVISION_MODES = ("2d", "3d", "2d+3d")
+from occflownet.choices import FLOW_MOVERS, HEAD_INITS, PRESET_NAMES, SUPERVISION_MODES, supervision_parts
+from occflownet.options import option
 
 # The per-preset recipe: the values a TrainConfig field left at None takes. The official values (AdamW 1e-4,
 # 200 warm-up steps, 32,768 rays per sample) for base and paper; tiny learns something in a CPU run of minutes.
+# One recipe per name of PRESET_NAMES (tests/test_choices.py).
 PRESET_RECIPES: dict[str, dict] = {
     "tiny": {"rays_per_step": 4096, "lr": 2e-3, "warmup_steps": 50, "ema_decay": 0.99, "checkpoint_every": 50},
     "base": {"rays_per_step": 32768, "lr": 1e-4, "warmup_steps": 200, "ema_decay": 0.999, "checkpoint_every": 500},
     "paper": {"rays_per_step": 32768, "lr": 1e-4, "warmup_steps": 200, "ema_decay": 0.999, "checkpoint_every": 500},
 }
+HEAD_INIT_CHOICES = ("", *HEAD_INITS)  # "" = the preset's
 
 
 @dataclass
@@ -26,41 +30,51 @@ class TrainConfig:
     (``dataclasses.replace(cfg, preset=...)`` keeps the resolved values of the old preset; build a new config.)
     """
 
-    preset: str = "tiny"
-    dataroot: str = ""
-    out: str = "runs/tiny"
-    version: str = "v1.0-trainval"
-    split: str = "train"
-    supervision: str = "2d"
-    horizon: int = 3
-    flow: bool = False
-    flow_mover: str = "idw"
-    dynamic_filter: bool = True
-    disocclusion: bool = True
-    loss_weighting: bool = True
-    depth_loss: bool = True          # rendered depth MSE and the LSS LiDAR depth BCE
-    density_scale: float = 1.0       # rendering uses τ_i = density_scale · σ_i · δ_i; 1.0 = official (σ per metre)
-    voxel_mask: bool = False         # 3D voxel losses only inside mask_camera (official: False, every voxel)
-    head_init: str = ""              # "" = the preset's; "prior" or "official" (model/presets.py HEAD_INITS)
-    free_space: bool = False         # also render LiDAR beams without a return; their opacity → 0 (beyond the paper)
-    free_rays_per_step: int = 2048   # free-space beams per sample per step (with free_space)
-    free_space_weight: float = 1.0   # weight of the free-space term −log(1 − opacity)
-    max_steps: int = 1000
-    time_limit_s: float = 0.0        # 0 = no limit; otherwise stop (with a checkpoint) after this many seconds
-    batch_size: int = 1              # samples per process per step
-    rays_per_step: int | None = None  # rays per sample per step; None = the preset's (official 32768)
-    lr: float | None = None          # AdamW learning rate; None = the preset's
-    weight_decay: float = 1e-2
-    grad_clip: float = 5.0
-    warmup_steps: int | None = None  # linear warm-up steps; None = the preset's
-    ema_decay: float | None = None   # None = the preset's
-    checkpoint_every: int | None = None  # steps between checkpoints; None = the preset's
-    log_every: int = 10
-    seed: int = 0
-    num_workers: int = 2
-    amp: bool = True                 # mixed precision where the device supports it (CUDA bf16/fp16)
-    device: str = "auto"
-    threshold: float | None = None   # τ stored with the model; None = 0.35 for 2d, 0.30 when 3D labels are used
+    preset: str = option("tiny", "model preset and its training recipe", choices=PRESET_NAMES)
+    dataroot: str = option("", "nuScenes-format root (run `occflownet prepare` on it first)")
+    out: str = option("runs/tiny", "run folder: checkpoints/, log.jsonl, train_config.json")
+    version: str = option("v1.0-trainval", "table version folder (on the command line, default: the only one in "
+                                           "the root)")
+    split: str = option("train", "split of the index to train on")
+    supervision: str = option("2d", "2d: rendering of LiDAR rays; 3d: Occ3D voxel labels; 2d+3d: both",
+                              choices=SUPERVISION_MODES)
+    horizon: int = option(3, "temporal frames t in [-O, O] (O = 0: no temporal rays)")
+    flow: bool = option(False, "occupancy flow: render temporal rays through the moved dynamic voxels")
+    flow_mover: str = option("idw", "how moved voxels are written back onto the grid", choices=FLOW_MOVERS)
+    dynamic_filter: bool = option(True, "drop the rays of temporal frames t ≠ 0 that end on dynamic objects "
+                                        "(not with --flow, which keeps and moves them)")
+    disocclusion: bool = option(True, "temporal frames render a copy with the predicted dynamic classes at σ = 0 "
+                                      "(without --flow)")
+    loss_weighting: bool = option(True, "weight each ray's losses by ω(label) from prepare's class counts (off: "
+                                        "uniform)")
+    depth_loss: bool = option(True, "rendered-depth MSE and LiDAR depth BCE (off: semantics only)")
+    density_scale: float = option(1.0, "rendering optical depth per metre = scale * sigma (1.0 = the official, "
+                                       "unscaled sigma)")
+    voxel_mask: bool = option(False, "3D voxel losses only inside mask_camera (off: every voxel, as the official "
+                                     "code)")
+    head_init: str = option("", "σ/semantic head init: prior (σ ≈ 0.1 at the start) or official (Xavier, zero "
+                                "bias); empty: the preset's", choices=HEAD_INIT_CHOICES)
+    free_space: bool = option(False, "also render LiDAR beams that returned nothing; their opacity goes to 0 "
+                                     "(beyond the paper)")
+    free_rays_per_step: int = option(2048, "free-space beams per sample per step (with --free-space)")
+    free_space_weight: float = option(1.0, "weight of the free-space term -log(1 - opacity)")
+    max_steps: int = option(1000, "optimisation steps")
+    time_limit_s: float = option(0.0, "stop with a checkpoint after this many seconds (0: no limit)",
+                                 flag="time-limit")
+    batch_size: int = option(1, "samples per process per step")
+    rays_per_step: int | None = option(None, "rays per sample per step (default: the preset's; official 32768)")
+    lr: float | None = option(None, "AdamW learning rate (default: the preset's)")
+    weight_decay: float = option(1e-2, "AdamW weight decay")
+    grad_clip: float = option(5.0, "gradient norm clip")
+    warmup_steps: int | None = option(None, "linear warm-up steps (default: the preset's)")
+    ema_decay: float | None = option(None, "EMA decay of the weights (default: the preset's)")
+    checkpoint_every: int | None = option(None, "steps between checkpoints (default: the preset's)")
+    log_every: int = option(10, "steps between log records")
+    seed: int = option(0, "seed of the weights, the sampling and the rays")
+    num_workers: int = option(2, "data loader processes")
+    amp: bool = option(True, "mixed precision where the device supports it (CUDA bf16)")
+    device: str = option("auto", "torch device (auto: CUDA when available)")
+    threshold: float | None = option(None, "τ stored with the model (default 0.35 for 2d, 0.30 with 3D labels)")
 
     def __post_init__(self):
         if self.preset not in PRESET_RECIPES:
@@ -68,12 +82,13 @@ class TrainConfig:
         for name, value in PRESET_RECIPES[self.preset].items():
             if getattr(self, name) is None:
                 setattr(self, name, value)
-        if self.supervision not in SUPERVISION_MODES:
-            raise ValueError(f"supervision must be one of {SUPERVISION_MODES}, got {self.supervision!r}")
+        supervision_parts(self.supervision)  # ValueError naming the modes
         if self.horizon < 0:
             raise ValueError("horizon must be >= 0")
-        if self.flow_mover not in ("idw", "nearest"):
-            raise ValueError("flow_mover must be 'idw' or 'nearest'")
+        if self.flow_mover not in FLOW_MOVERS:
+            raise ValueError(f"flow_mover must be one of {FLOW_MOVERS}, got {self.flow_mover!r}")
+        if self.head_init not in HEAD_INIT_CHOICES:
+            raise ValueError(f"head_init must be one of {HEAD_INIT_CHOICES}, got {self.head_init!r}")
         if self.free_space and not self.uses_2d:
             raise ValueError("free_space renders LiDAR beams: it needs supervision '2d' or '2d+3d'")
         if self.free_rays_per_step < 1 or self.free_space_weight < 0:
@@ -81,11 +96,11 @@ class TrainConfig:
 
     @property
     def uses_2d(self) -> bool:
-        return self.supervision in ("2d", "2d+3d")
+        return "2d" in supervision_parts(self.supervision)
 
     @property
     def uses_3d(self) -> bool:
-        return self.supervision in ("3d", "2d+3d")
+        return "3d" in supervision_parts(self.supervision)
 
     def resolved_threshold(self) -> float:
         if self.threshold is not None:

@@ -1,4 +1,5 @@
-"""``GET /metrics``: this worker process's Prometheus text (:class:`occflownet.serve.metrics.Metrics`)."""
+"""``GET /metrics``: the Prometheus text of the server, all worker processes together
+(:class:`occflownet.serve.metrics.Metrics`)."""
 from __future__ import annotations
 
 from fastapi import APIRouter
@@ -10,12 +11,12 @@ from occflownet.serve.schemas import error_doc
 
 router = APIRouter()
 
-RESPONSES = {200: {"description": "Prometheus text exposition (version 0.0.4)",
+RESPONSES = {200: {"description": "Prometheus text exposition",
                    "content": {"text/plain": {"schema": {"type": "string"}}}},
              401: error_doc("API key required")}
 
 
 @router.get("/metrics", response_class=Response, responses=RESPONSES,
-            summary="Prometheus metrics of this worker process")
+            summary="Prometheus metrics of the server (every worker)")
 async def metrics(registry: MetricsDep) -> Response:
     return Response(registry.render(), media_type=CONTENT_TYPE)

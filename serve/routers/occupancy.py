@@ -23,12 +23,12 @@ from occflownet.serve.decode import ImageError, check_header, common_size, decod
 from occflownet.serve.dependencies import GateDep, MediaTypeDep, MetricsDep, ReadyRuntimeDep, SettingsDep
 from occflownet.serve.encode import encode
 from occflownet.serve.errors import ApiError
-from occflownet.serve.form import Part, read_parts
+from occflownet.serve.form import FormPart, Part, openapi_request_body, read_parts
 from occflownet.serve.limits import InferenceGate, Saturated
 from occflownet.serve.metrics import Metrics
 from occflownet.serve.model_runtime import ModelRuntime
 from occflownet.serve.schemas import OccupancyJSON, error_doc
-from occflownet.serve.settings import MAX_CALIBRATION_BYTES
+from occflownet.serve.settings import DEFAULT_MAX_BODY_BYTES, MAX_CALIBRATION_BYTES
 
 router = APIRouter()
 
@@ -58,19 +58,23 @@ RESPONSES = {
     422: error_doc("missing, extra, repeated or unnamed parts"),
     503: error_doc("model not ready yet (warming up) or server saturated; see Retry-After"),
 }
-_PARTS = {cam: {"type": "string", "format": "binary", "description": f"{cam} image, JPEG or PNG (RGB as stored, "
-                "EXIF orientation ignored)"} for cam in CAMERAS}
-_PARTS["calibration"] = {
-    "type": "string",
-    "description": 'optional calibration JSON {"cameras": {"CAM_FRONT": {"intrinsic": 3x3, "cam2ego": 4x4}, ...},'
-                   ' "image_size": [w, h] (optional)}; without it the model\'s default calibration is used, its '
-                   "intrinsics scaled when the images' size differs with the same aspect ratio",
-}
-REQUEST = {"requestBody": {"required": True, "content": {"multipart/form-data": {
-    "schema": {"type": "object", "properties": _PARTS, "required": list(CAMERAS)},
-    "encoding": {cam: {"contentType": "image/jpeg, image/png"} for cam in CAMERAS}
-    | {"calibration": {"contentType": "application/json"}},
-}}}}
+
+
+def occupancy_parts(cameras: tuple[str, ...], max_image_bytes: int) -> dict[str, FormPart]:
+    """The parts ``POST /v1/occupancy`` allows: one image per camera (required, at most ``max_image_bytes``) and the
+    optional calibration JSON (at most MAX_CALIBRATION_BYTES, a file or a plain field). The reader's names and
+    limits and the OpenAPI request body both come from here."""
+    images = {cam: FormPart(max_image_bytes, True, f"{cam} image, JPEG or PNG (RGB as stored, EXIF orientation "
+                            "ignored)", content_type="image/jpeg, image/png") for cam in cameras}
+    calibration = FormPart(
+        MAX_CALIBRATION_BYTES, False, 'optional calibration JSON {"cameras": {"CAM_FRONT": {"intrinsic": 3x3, '
+        '"cam2ego": 4x4}, ...}, "image_size": [w, h] (optional)}; without it the model\'s default calibration is '
+        "used, its intrinsics scaled when the images' size differs with the same aspect ratio",
+        binary=False, content_type="application/json")
+    return images | {"calibration": calibration}
+
+
+REQUEST = {"requestBody": openapi_request_body(occupancy_parts(CAMERAS, DEFAULT_MAX_BODY_BYTES))}
 
 
 @router.post("/v1/occupancy", response_class=Response, responses=RESPONSES, openapi_extra=REQUEST,
@@ -87,8 +91,7 @@ async def occupancy(request: Request, media_type: MediaTypeDep, runtime: ReadyRu
                        f"{exc.retry_after} s", {"Retry-After": str(exc.retry_after)}) from None
     try:
         md = runtime.metadata
-        limits = {cam: settings.max_body_bytes for cam in md.cameras} | {"calibration": MAX_CALIBRATION_BYTES}
-        parts = await read_parts(request, limits)
+        parts = await read_parts(request, occupancy_parts(md.cameras, settings.max_body_bytes))
         sizes, K, T = _checked_inputs(parts, md, settings.max_image_pixels)
         body, headers = await _compute(gate, runtime, metrics, parts, sizes, K, T, settings.max_image_pixels,
                                       media_type)

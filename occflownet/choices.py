@@ -1,0 +1,17 @@
+"""The named choices of the configurations, each set defined once and torch-free: the command line
+(``occflownet/options.py``), the configurations (``model/presets.py``, ``train/recipe.py``, ``quickstart.py``) and
+their checks read these tuples (``tests/test_choices.py`` lists them and finds no second spelling).
+"""
+from __future__ import annotations
+
+PRESET_NAMES: tuple[str, ...] = ("tiny", "base", "paper")   # model presets (model/presets.py PRESETS) and recipes
+HEAD_INITS: tuple[str, ...] = ("prior", "official")         # σ/semantic head initialisations (model/decoder.py)
+SUPERVISION_MODES: tuple[str, ...] = ("2d", "3d", "2d+3d")  # LiDAR rendering, Occ3D voxel labels, both
+FLOW_MOVERS: tuple[str, ...] = ("idw", "nearest")           # occupancy-flow movers (render/occupancy_flow.py)
+
+
+def supervision_parts(mode: str) -> frozenset[str]:
+    """The kinds of supervision a mode of :data:`SUPERVISION_MODES` combines: "2d+3d" → {"2d", "3d"}."""
+    if mode not in SUPERVISION_MODES:
+        raise ValueError(f"supervision must be one of {SUPERVISION_MODES}, got {mode!r}")
+    return frozenset(mode.split("+"))
