@@ -29,17 +29,14 @@ from __future__ import annotations
 
 import torch
 
+from occflownet.contract.images import crop_window as contract_crop_window
+
 
 def crop_window(height, width, input_size: tuple[int, int], subsample: bool = True):
     """(y_start, x_start, x_end, step): the crop keeps rows ``y_start::step`` (to the bottom of the image) and
-    columns ``x_start:x_end:step``. Works on Python ints and on symbolic shape ints (export)."""
-    h_in, w_in = input_size
-    crop_h = torch.sym_min(height, (2 * width * h_in + w_in) // (2 * w_in))   # round(W * h_in / w_in)
-    crop_w = torch.sym_min(width, (2 * height * w_in + h_in) // (2 * h_in))   # round(H * w_in / h_in)
-    step = torch.sym_max(1, crop_w // (2 * w_in)) if subsample else 1
-    centre = (step - 1) // 2                                                   # keep the middle of each block
-    x0 = (width - crop_w) // 2
-    return height - crop_h + centre, x0 + centre, x0 + crop_w, step
+    columns ``x_start:x_end:step``. The contract's rule (:func:`occflownet.contract.crop_window`, which the
+    reduced-scale JPEG decoding of the inference paths also follows) on Python ints or symbolic shape ints."""
+    return contract_crop_window(height, width, input_size, subsample, torch.sym_min, torch.sym_max)
 
 
 def adjust_intrinsics(intrinsics: torch.Tensor, y_start, x_start, step, rows, cols,
