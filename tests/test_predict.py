@@ -141,7 +141,7 @@ def test_jpegs_are_decoded_at_the_scale_the_graph_would_keep():
     """The contract's reduced-scale rule on the real frame: tiny (step 2 at 1600x900) gets the JPEGs at 1/2, base
     (step 1) whole; a PNG is always whole. The half-scale decode is the 2x2 block average of the whole one: it
     matches cv2.resize(INTER_AREA) of the whole decode (the pixel-centre rule with s = 1/2, the intrinsics' rule)
-    to about a grey level, five times closer than the same average taken one stored pixel to the right."""
+    to a third of a grey level, 5-8x closer than the same average taken one stored pixel to the right."""
     import cv2
 
     from occflownet.contract import ImageHeader, decode_reduction
@@ -157,7 +157,7 @@ def test_jpegs_are_decoded_at_the_scale_the_graph_would_keep():
         area = cv2.resize(whole[i], (800, 450), interpolation=cv2.INTER_AREA)
         shifted = cv2.resize(np.roll(whole[i], -1, axis=1), (800, 450), interpolation=cv2.INTER_AREA)
         err, err_shifted = (np.abs(frame.images[i] - a)[5:-5, 5:-5].mean() for a in (area, shifted))
-        assert err < 1.5 and err_shifted > 5 * err, (i, err, err_shifted)
+        assert err < 0.5 and err_shifted > 4 * err, (i, err, err_shifted)   # measured 0.31-0.34 vs 1.7-2.7
     K, _ = frame.calibration_arrays(json.loads((FRAME / "calib.json").read_text()))
     K_whole, _ = calibration_arrays(json.loads((FRAME / "calib.json").read_text()), 1600, 900)
     np.testing.assert_allclose(K[:, :2, :2], K_whole[:, :2, :2] / 2, rtol=1e-6)
