@@ -199,11 +199,15 @@ def build_graphs(name: str, args, model, whole, reduced, workdir: Path) -> list[
             save_checkpoint(ckpt, model, model.cfg)
             export_baseline_commit(args.baseline_commit, ckpt, base, workdir)
         graphs.append((f"baseline {args.baseline_commit or base.name}, whole images", base, whole))
-    if args.variants:
-        from occflownet.export.variants import write_fp16, write_int8
+    wanted = [] if args.variants is None else (args.variants or ["int8", "fp16"])
+    if "int8" in wanted:
+        from occflownet.export.variants import write_int8
 
         int8 = write_int8(path, workdir / f"{name}.int8.onnx", model.cfg, frame=FRAME if FRAME.is_dir() else None)
         graphs.append(("today int8", int8, reduced))
+    if "fp16" in wanted:
+        from occflownet.export.variants import write_fp16
+
         graphs.append(("today fp16", write_fp16(path, workdir / f"{name}.fp16.onnx"), reduced))
     return graphs
 
@@ -251,7 +255,8 @@ def main(argv=None) -> int:
     p.add_argument("--checkpoint", help="time this trained checkpoint (of the one preset given) instead")
     p.add_argument("--baseline", help="an ONNX file of the same preset and weights to time beside today's")
     p.add_argument("--baseline-commit", help="export the same weights with this commit's code (git worktree)")
-    p.add_argument("--variants", action="store_true", help="also time today's int8 and fp16 graphs")
+    p.add_argument("--variants", nargs="*", choices=["int8", "fp16"], default=None,
+                   help="also time today's reduced-precision graphs (no value: both)")
     p.add_argument("--profile", action="store_true", help="print onnxruntime's per-op profile of each graph")
     p.add_argument("--profile-runs", type=int, default=5)
     p.add_argument("--torch", action="store_true", help="also time torch eager")

@@ -145,13 +145,13 @@ class VoxelDecoder(nn.Module):
         """Inference: (occupancy uint8, density) [B, Xc, Yc, Zc, s³], Φs evaluated only where σ ≥ threshold.
 
         Equals fusing :meth:`forward`'s outputs (argmax where σ ≥ τ else free) but skips the semantic MLP on free
-        voxels (the gather/scatter export as NonZero/GatherND/ScatterND; occupied voxels are unique, no reduction).
+        voxels (the gather/scatter export as NonZero/Gather/ScatterND; occupied voxels are unique, no reduction).
         """
         b, xc, yc, zc, _ = trunk.shape
         x = self.voxel_features(trunk, fine_points)
         density = torch.sigmoid(self.sigma_head(x)).reshape(-1)                    # [B·Xc·Yc·Zc·s³]
         occupied = torch.nonzero(density >= threshold).reshape(-1)
-        labels = torch.argmax(self.semantic_head(x[occupied]), dim=-1).to(torch.uint8)
+        labels = torch.argmax(self.semantic_head(torch.index_select(x, 0, occupied)), dim=-1).to(torch.uint8)
         occupancy = torch.full(density.shape, FREE, dtype=torch.uint8, device=x.device)
         occupancy = occupancy.index_put((occupied,), labels)
         shape = (b, xc, yc, zc, self.stride ** 3)
