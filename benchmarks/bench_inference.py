@@ -1,7 +1,8 @@
 """Inference latency per preset, six camera images of the real nuScenes frame → grid, with a regression guard.
 
     python benchmarks/bench_inference.py [--presets tiny base] [--runs 20] [--occupied 0.25] [--checkpoint CKPT]
-        [--baseline FILE | --baseline-commit REV] [--profile] [--variants] [--torch] [--threads N]
+        [--baseline FILE | --baseline-commit REV] [--profile] [--variants [int8 fp16]] [--openvino] [--torch]
+        [--threads N]
 
 For each preset a model (random-init seed 0 with Φσ's output bias shifted so that a fraction ``--occupied`` of the
 voxels is occupied — Φs only runs on those —, or the trained ``--checkpoint``) is exported by today's code
@@ -14,7 +15,9 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
 - ``baseline`` (``--baseline FILE``, an ONNX file of the same preset and weights, or ``--baseline-commit REV``:
   that commit is checked out in a ``git worktree`` and its own exporter writes the same weights, saved as a
   checkpoint by this script) fed whole images, as its code decoded them;
-- with ``--variants``: today's int8 (QDQ, ``export/variants.py``) and fp16 graphs, with their agreement with fp32.
+- with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations) and
+  fp16 graphs, with their agreement with fp32 (the first row); ``--openvino`` adds today's fp32 and int8 graphs
+  run by OpenVINO CPU (f32 precision hint: this CPU has no bf16, ``OPTIMIZATION_CAPABILITIES`` = FP32, INT8).
 
 ``--profile`` prints onnxruntime's own profile of each graph (kernel time per op class, share of the run, and the
 costliest nodes), so a loss shows where it comes from. A 2048³ fp32 matmul (torch) is measured at the start and
@@ -167,6 +170,20 @@ def print_profile(label: str, ops: dict, nodes: dict, total: float, top: int = 1
         print(f"      node {node:40s} {ms:7.2f} ms  {str(shape)[:70]}")
 
 
+class OpenVinoSession:
+    """OpenVINO CPU (``INFERENCE_PRECISION_HINT`` f32, as tests/test_runtimes.py) behind onnxruntime's ``run``."""
+
+    def __init__(self, path: Path, threads: int):
+        import openvino as ov
+
+        self.compiled = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_PRECISION_HINT": "f32",
+                                                                  "INFERENCE_NUM_THREADS": threads})
+
+    def run(self, names, feeds):
+        result = self.compiled(feeds)
+        return [result[self.compiled.output(n)] for n in names]
+
+
 def interleaved(graphs: list[tuple[str, object, tuple]], runs: int) -> dict[str, list[float]]:
     """Each (label, session, (images, K, T)) once per round, the order rotating; 2 warm-up rounds."""
     from occflownet.contract import run_session
@@ -221,7 +238,11 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
     graphs = build_graphs(name, args, model, whole, reduced, workdir)
     print(f"{name}: exported in {time.perf_counter() - t:.0f} s; {len(graphs)} graphs, {args.runs} interleaved runs",
           flush=True)
-    sessions = [(label, create_session(path, threads, spinning=SPINNING), inputs) for label, path, inputs in graphs]
+    if args.openvino:
+        graphs += [(f"{label} [OpenVINO]", path, inputs) for label, path, inputs in graphs
+                   if label in ("today", "today int8")]
+    sessions = [(label, OpenVinoSession(path, threads) if label.endswith("[OpenVINO]")
+                 else create_session(path, threads, spinning=SPINNING), inputs) for label, path, inputs in graphs]
     times = interleaved(sessions, args.runs)
     ref = run_session(sessions[0][1], *reduced)
     first = np.median(times[graphs[0][0]])
@@ -238,6 +259,8 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
               f"{a['density_max_abs_diff']:.1e}", flush=True)
     if args.profile:
         for label, path, inputs in graphs:
+            if label.endswith("[OpenVINO]"):
+                continue
             print_profile(label, *profile(path, make_feeds(*(x[None] for x in inputs)), args.profile_runs, threads))
     if args.torch:
         targs = tuple(torch.from_numpy(a)[None] for a in reduced)
@@ -260,6 +283,7 @@ def main(argv=None) -> int:
     p.add_argument("--profile", action="store_true", help="print onnxruntime's per-op profile of each graph")
     p.add_argument("--profile-runs", type=int, default=5)
     p.add_argument("--torch", action="store_true", help="also time torch eager")
+    p.add_argument("--openvino", action="store_true", help="also run today's fp32 (and int8) graph on OpenVINO CPU")
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     p.add_argument("--ort-spinning", action="store_true", help="let onnxruntime's idle threads busy-wait")
     args = p.parse_args(argv)
