@@ -22,7 +22,8 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
 ``--profile`` prints onnxruntime's own profile of each graph (kernel time per op class, share of the run, and the
 costliest nodes), so a loss shows where it comes from. A 2048³ fp32 matmul (torch) is measured at the start and
 the end of the run as the machine's reference; ``--torch`` also times torch eager (``model.inference``). JPEG
-decoding of the six files (whole and at reduced scale) is timed separately.
+decoding of the six files (whole for the baseline, at reduced scale for today) is timed with each inference in the
+same loop ("with decoding": the end-to-end figure of predict, the server and the C++ runner).
 """
 from __future__ import annotations
 
@@ -63,23 +64,26 @@ sys.exit(main(["export", "--checkpoint", ckpt, "--out", out]))
 
 
 def frame_inputs(input_size):
-    """(whole images uint8 [6, H, W, 3], K, T), (reduced-scale images, K, T), decode ms (whole, reduced)."""
-    from occflownet.contract import calibration_arrays, load_calibration
-    from occflownet.predict import load_frame
+    """(whole images uint8 [6, H, W, 3], K, T, decode), (reduced-scale images, K, T, decode), source: ``decode()``
+    decodes the six JPEGs (held in memory) as that path does, for the end-to-end timings."""
+    from occflownet.contract import calibration_arrays, decode_reduction, image_header, load_calibration
+    from occflownet.predict import decode_image, find_camera_images, load_frame
     from occflownet.rig import default_rig
 
     if not (FRAME / "calib.json").is_file():
         K, T = calibration_arrays(default_rig(1600, 900))
         images = np.random.default_rng(0).integers(0, 256, (6, 900, 1600, 3), dtype=np.uint8)
-        return (images, K, T), (images, K, T), (float("nan"), float("nan")), "random images (no real frame)"
+        same = (images, K, T, lambda: images)
+        return same, same, "random images (no real frame)"
     calib = load_calibration(FRAME / "calib.json")
-    decoded, ms = [], []
+    blobs = [p.read_bytes() for p in find_camera_images(FRAME).values()]
+    decoded = []
     for size in (None, input_size):
-        t = time.perf_counter()
         frame = load_frame(FRAME, size)
-        ms.append((time.perf_counter() - t) * 1000)
-        decoded.append((frame.images, *frame.calibration_arrays(calib)))
-    return decoded[0], decoded[1], tuple(ms), "real nuScenes frame"
+        n = decode_reduction(image_header(blobs[0]), size)
+        decoded.append((frame.images, *frame.calibration_arrays(calib),
+                        lambda n=n: np.stack([decode_image(b, "image", n) for b in blobs])))
+    return decoded[0], decoded[1], "real nuScenes frame"
 
 
 def matmul_gflops(n: int = 2048, reps: int = 5) -> float:
@@ -184,18 +188,26 @@ class OpenVinoSession:
         return [result[self.compiled.output(n)] for n in names]
 
 
-def interleaved(graphs: list[tuple[str, object, tuple]], runs: int) -> dict[str, list[float]]:
-    """Each (label, session, (images, K, T)) once per round, the order rotating; 2 warm-up rounds."""
+def interleaved(graphs: list[tuple[str, object, tuple]], runs: int) -> tuple[dict, dict]:
+    """Each (label, session, (images, K, T, decode)) once per round, the order rotating, 2 warm-up rounds →
+    ({label: inference seconds}, {label: decode + inference seconds}) per run (decode: the six JPEGs as that
+    graph's code decodes them, then the inference on its result)."""
     from occflownet.contract import run_session
 
-    times = {label: [] for label, _, _ in graphs}
+    infer = {label: [] for label, _, _ in graphs}
+    total = {label: [] for label, _, _ in graphs}
     for i in range(runs + 2):
         order = graphs[i % len(graphs):] + graphs[:i % len(graphs)]
-        for label, session, (images, K, T) in order:
-            t = _timed(lambda: run_session(session, images, K, T))
+        for label, session, (_, K, T, decode) in order:
+            t0 = time.perf_counter()
+            images = decode()
+            t1 = time.perf_counter()
+            run_session(session, images, K, T)
+            t2 = time.perf_counter()
             if i >= 2:
-                times[label].append(t)
-    return times
+                infer[label].append(t2 - t1)
+                total[label].append(t2 - t0)
+    return infer, total
 
 
 def build_graphs(name: str, args, model, whole, reduced, workdir: Path) -> list[tuple[str, Path, tuple]]:
@@ -206,7 +218,7 @@ def build_graphs(name: str, args, model, whole, reduced, workdir: Path) -> list[
     from occflownet.model import save_checkpoint
 
     path = workdir / f"{name}.onnx"
-    sample = ParitySample("bench", reduced[0][None], reduced[1][None], reduced[2][None])
+    sample = ParitySample("bench", reduced[0][None], reduced[1][None], reduced[2][None])   # (images, K, T, …)
     export_model(model, model.cfg, path, parity_samples=[sample])
     graphs = [("today", path, reduced), ("today, whole images", path, whole)]
     if args.baseline or args.baseline_commit:
@@ -233,7 +245,7 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
     from occflownet.contract import create_session, make_feeds, run_session
     from occflownet.export.onnx_export import agreement
 
-    model = bench_model(name, args.occupied, args.checkpoint, reduced)
+    model = bench_model(name, args.occupied, args.checkpoint, reduced[:3])
     t = time.perf_counter()
     graphs = build_graphs(name, args, model, whole, reduced, workdir)
     print(f"{name}: exported in {time.perf_counter() - t:.0f} s; {len(graphs)} graphs, {args.runs} interleaved runs",
@@ -243,27 +255,28 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
                    if label in ("today", "today int8")]
     sessions = [(label, OpenVinoSession(path, threads) if label.endswith("[OpenVINO]")
                  else create_session(path, threads, spinning=SPINNING), inputs) for label, path, inputs in graphs]
-    times = interleaved(sessions, args.runs)
-    ref = run_session(sessions[0][1], *reduced)
-    first = np.median(times[graphs[0][0]])
-    flops = model_flops(model, tuple(torch.from_numpy(a)[None] for a in reduced))
+    times, totals = interleaved(sessions, args.runs)
+    ref = run_session(sessions[0][1], *reduced[:3])
+    first, first_total = np.median(times[graphs[0][0]]), np.median(totals[graphs[0][0]])
+    flops = model_flops(model, tuple(torch.from_numpy(a)[None] for a in reduced[:3]))
     print(f"{name}: {flops / 1e9:.2f} GFLOP (torch FLOP counter on the reduced-scale frame); fp32 occupied "
           f"{100 * np.mean(ref[0] != 17):.1f} % of voxels")
     for (label, session, inputs), (_, path, _) in zip(sessions, graphs):
-        p50 = np.median(times[label])
-        out = run_session(session, *inputs)
+        p50, total = np.median(times[label]), np.median(totals[label])
+        out = run_session(session, *inputs[:3])
         a = agreement(ref[0], ref[1], out[0], out[1])
-        print(f"  {label:42s} p50 {p50 * 1e3:8.1f} ms  p90 {np.percentile(times[label], 90) * 1e3:8.1f} ms  "
-              f"{p50 / first:5.2f}x of today  (first/this {first / p50:5.2f}x) | {flops / 1e9 / p50:5.1f} GFLOP/s | "
-              f"vs today: {100 * a['occupancy_equal_fraction']:.3f} % voxels equal, density max |d| "
-              f"{a['density_max_abs_diff']:.1e}", flush=True)
+        print(f"  {label:42s} p50 {p50 * 1e3:8.1f} ms (p90 {np.percentile(times[label], 90) * 1e3:7.1f}), "
+              f"{p50 / first:5.2f}x of today | with decoding p50 {total * 1e3:8.1f} ms, {total / first_total:5.2f}x "
+              f"of today | {flops / 1e9 / p50:5.1f} GFLOP/s | vs today: {100 * a['occupancy_equal_fraction']:.3f} % "
+              f"voxels equal, density max |d| {a['density_max_abs_diff']:.1e}", flush=True)
     if args.profile:
         for label, path, inputs in graphs:
             if label.endswith("[OpenVINO]"):
                 continue
-            print_profile(label, *profile(path, make_feeds(*(x[None] for x in inputs)), args.profile_runs, threads))
+            print_profile(label, *profile(path, make_feeds(*(x[None] for x in inputs[:3])), args.profile_runs,
+                                          threads))
     if args.torch:
-        targs = tuple(torch.from_numpy(a)[None] for a in reduced)
+        targs = tuple(torch.from_numpy(a)[None] for a in reduced[:3])
         with torch.no_grad():
             model.inference(*targs)
             tt = [_timed(lambda: model.inference(*targs)) for _ in range(max(3, args.runs // 4))]
@@ -296,9 +309,9 @@ def main(argv=None) -> int:
         for name in args.presets:
             from occflownet.model import get_preset
 
-            whole, reduced, (ms_whole, ms_reduced), source = frame_inputs(get_preset(name).input_size)
-            print(f"{name}: inputs {source}: whole 6x{whole[0].shape[2]}x{whole[0].shape[1]} (decode {ms_whole:.0f} "
-                  f"ms), reduced 6x{reduced[0].shape[2]}x{reduced[0].shape[1]} (decode {ms_reduced:.0f} ms)")
+            whole, reduced, source = frame_inputs(get_preset(name).input_size)
+            print(f"{name}: inputs {source}: whole 6x{whole[0].shape[2]}x{whole[0].shape[1]}, as today's paths "
+                  f"decode them 6x{reduced[0].shape[2]}x{reduced[0].shape[1]}")
             bench_preset(name, args, whole, reduced, Path(tmp), args.threads)
     print(f"fp32 matmul 2048^3 (torch): {matmul_gflops():.1f} GFLOP/s at end; load average "
           f"{os.getloadavg()[0]:.2f}")

@@ -7,7 +7,8 @@ calibration checks, intrinsics rescaling and onnxruntime sessions from here. Imp
 
 Modules: :mod:`~occflownet.contract.tensors` (the tensors, signature check, feeds),
 :mod:`~occflownet.contract.metadata` (metadata keys and parsing), :mod:`~occflownet.contract.calibration`
-(calibration JSON and the rescaling rule), :mod:`~occflownet.contract.images` (image decoding, the graph's crop window, reduced-scale JPEG decoding),
+(calibration JSON and the rescaling rule), :mod:`~occflownet.contract.images` (image decoding, the graph's crop
+window, reduced-scale JPEG decoding),
 :mod:`~occflownet.contract.session` (the onnxruntime session). Their
 public names are re-exported here: ``from occflownet import contract; contract.create_session(...)``.
 

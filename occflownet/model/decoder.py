@@ -107,8 +107,8 @@ class VoxelDecoder(nn.Module):
             nn.init.constant_(self.sigma_head[-1].bias, SIGMA_PRIOR_LOGIT)
 
     def trunk_rows(self, trunk: torch.Tensor) -> torch.Tensor:
-        """Trunk grid [B, Xc, Yc, Zc, C] → stem and residual blocks → [M, Ct] (M = B·Xc·Yc·Zc, rows in (b, xc, yc,
-        zc) order). Training (and any grid higher than FOLD_Z_MAX) runs the Conv3d modules; eval mode runs the same
+        """Trunk grid [B, Xc, Yc, Zc, C] → stem and residual blocks → [M, Ct] (M = B·Xc·Yc·Zc, rows in
+        (b, xc, yc, zc) order). Training (and any grid higher than FOLD_Z_MAX) runs the Conv3d modules; eval mode runs the same
         map as 2-D convolutions with z folded into the channels (:func:`fold_conv`, BatchNorm folded in)."""
         b, xc, yc, zc, _ = trunk.shape
         if self.training or zc > FOLD_Z_MAX:
