@@ -297,6 +297,7 @@ def main(argv=None) -> int:
     p.add_argument("--profile-runs", type=int, default=5)
     p.add_argument("--torch", action="store_true", help="also time torch eager")
     p.add_argument("--openvino", action="store_true", help="also run today's fp32 (and int8) graph on OpenVINO CPU")
+    p.add_argument("--keep", help="write the graphs into this folder and keep them (a baseline for later runs)")
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     p.add_argument("--ort-spinning", action="store_true", help="let onnxruntime's idle threads busy-wait")
     args = p.parse_args(argv)
@@ -306,6 +307,9 @@ def main(argv=None) -> int:
     print(f"threads {args.threads} (onnxruntime spinning {SPINNING}); load average {os.getloadavg()[0]:.2f} at start")
     print(f"fp32 matmul 2048^3 (torch): {matmul_gflops():.1f} GFLOP/s at start", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
+        if args.keep:
+            tmp = args.keep
+            Path(tmp).mkdir(parents=True, exist_ok=True)
         for name in args.presets:
             from occflownet.model import get_preset
 

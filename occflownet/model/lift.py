@@ -134,9 +134,11 @@ class LiftSplat(nn.Module):
         cx, cy, cz = (n // self.stride for n in GRID.shape)
         keep = torch.nonzero(valid.reshape(-1)).reshape(-1)                        # [K] point indices
         pixel = torch.div(keep, d * h * w, rounding_mode="floor") * (h * w) + torch.remainder(keep, h * w)
-        weight = depth_prob.reshape(-1)[keep][:, None]                             # [K, 1]
-        lifted = weight * context.reshape(-1, context.shape[-1])[pixel]            # [K, C]
-        trunk = scatter_pool(lifted, coarse_rows.reshape(-1)[keep], b * cx * cy * cz).reshape(b, cx, cy, cz, -1)
+        pick = torch.index_select                                                  # ONNX Gather
+        weight = pick(depth_prob.reshape(-1), 0, keep)[:, None]                    # [K, 1]
+        lifted = weight * pick(context.reshape(-1, context.shape[-1]), 0, pixel)   # [K, C]
+        trunk = scatter_pool(lifted, pick(coarse_rows.reshape(-1), 0, keep), b * cx * cy * cz)
+        trunk = trunk.reshape(b, cx, cy, cz, -1)
         if fine is None:
             return trunk, None
-        return trunk, (fine_rows.reshape(-1)[keep], weight * fine.reshape(-1, fine.shape[-1])[pixel])
+        return trunk, (pick(fine_rows.reshape(-1), 0, keep), weight * pick(fine.reshape(-1, fine.shape[-1]), 0, pixel))
