@@ -24,7 +24,7 @@ import numpy as np
 import onnx
 
 from occflownet.export.onnx_export import ExportError, agreement, validate_proto
-from occflownet.export.parity import default_parity_samples
+from occflownet.export.parity import default_parity_samples, inference_frame_sample
 from occflownet.contract import create_session, run_session
 from occflownet.model import ModelConfig
 
@@ -178,22 +178,11 @@ def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int 
     return dst
 
 
-def _inference_sample(folder: str | Path, cfg: ModelConfig):
-    """The frame of ``folder`` as the inference paths feed it (JPEGs at reduced scale), batch 1."""
-    from occflownet.contract import load_calibration
-    from occflownet.export.parity import ParitySample
-    from occflownet.predict import load_frame
-
-    frame = load_frame(folder, tuple(cfg.input_size))
-    K, T = frame.calibration_arrays(load_calibration(Path(folder) / "calib.json"))
-    return ParitySample(f"frame:{Path(folder).name}", frame.images[None], K[None], T[None])
-
-
 def write_variants(fp32_path: str | Path, cfg: ModelConfig, fp16: bool = False, int8: bool = False,
                    frame: str | Path | None = None) -> list[str]:
     """Write the requested variants beside ``fp32_path``; returns one report line per variant."""
     fp32_path = Path(fp32_path)
-    sample = _inference_sample(frame, cfg) if frame else default_parity_samples(cfg, [], seed=5)[0]
+    sample = inference_frame_sample(frame, cfg) if frame else default_parity_samples(cfg, [], seed=5)[0]
     reference = run_session(create_session(fp32_path), sample.images, sample.intrinsics, sample.cam2ego)
     lines = []
     todo = [("fp16", write_fp16, ())] if fp16 else []
