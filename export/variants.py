@@ -166,8 +166,7 @@ def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int 
                         quant_format=QuantFormat.QDQ, op_types_to_quantize=INT8_OP_TYPES,
                         nodes_to_exclude=activation_matmuls(onnx.load(str(src))), reduce_range=INT8_REDUCE_RANGE,
                         per_channel=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                        calibrate_method=CalibrationMethod.MinMax,
-                        extra_options={"CalibMaxIntermediateOutputs": 1})   # ranges merged per sample (memory)
+                        calibrate_method=CalibrationMethod.MinMax)
     finally:
         root.setLevel(level)
     proto = onnx.load(str(dst))
