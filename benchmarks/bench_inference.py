@@ -1,20 +1,37 @@
-"""Inference latency per preset: torch eager vs onnxruntime (CPU), six native 1600x900 uint8 images → grid.
+"""Inference latency per preset, six camera images of the real nuScenes frame → grid, with a regression guard.
 
-    python benchmarks/bench_inference.py [--presets tiny base] [--runs 20] [--occupied 0.25] [--variants]
+    python benchmarks/bench_inference.py [--presets tiny base] [--runs 20] [--occupied 0.25] [--checkpoint CKPT]
+        [--baseline FILE | --baseline-commit REV] [--profile] [--variants [int8 fp16]] [--openvino] [--torch]
+        [--threads N]
 
-For each preset a random-init model (seed 0) is exported (parity-checked on the real frame), then torch eager
-(``model.inference``, torch threads = cores) and onnxruntime (CPU provider, intra-op threads = cores) run the same
-six decoded images alternately, so both see the same machine load. Φσ's output bias is shifted so that a fraction
-``--occupied`` of the voxels is occupied (Φs only runs on those; a random-init model would leave the grid empty
-and flatter the timings). Printed: p50/p90 per backend, their ratio, model GFLOP (torch FLOP counter: matmuls and
-convolutions) and the achieved GFLOP/s next to a 2048³ fp32 matmul measured in the same run. JPEG decoding is
-timed separately and not included. ``--variants`` also writes the fp16 and int8 graphs and times them (with
-their agreement with fp32 on the same images).
+For each preset a model (random-init seed 0 with Φσ's output bias shifted so that a fraction ``--occupied`` of the
+voxels is occupied — Φs only runs on those —, or the trained ``--checkpoint``) is exported by today's code
+(parity-checked on the real frame). Every graph below runs in ONE loop, in turn run by run (the order rotating),
+so machine load hits all alike, and is reported as p50 and as a ratio to the first row:
+
+- ``today``: today's graph fed as ``predict``, the server and the C++ runner feed it (the JPEGs decoded at
+  reduced scale, ``occflownet.contract.decode_reduction``);
+- ``today, whole images``: the same graph on the six images decoded whole (the graph-only gain);
+- ``baseline`` (``--baseline FILE``, an ONNX file of the same preset and weights, or ``--baseline-commit REV``:
+  that commit is checked out in a ``git worktree`` and its own exporter writes the same weights, saved as a
+  checkpoint by this script) fed whole images, as its code decoded them;
+- with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations) and
+  fp16 graphs, with their agreement with fp32 (the first row); ``--openvino`` adds today's fp32 and int8 graphs
+  run by OpenVINO CPU (f32 precision hint: this CPU has no bf16, ``OPTIMIZATION_CAPABILITIES`` = FP32, INT8).
+
+``--profile`` prints onnxruntime's own profile of each graph (kernel time per op class, share of the run, and the
+costliest nodes), so a loss shows where it comes from. A 2048³ fp32 matmul (torch) is measured at the start and
+the end of the run as the machine's reference; ``--torch`` also times torch eager (``model.inference``). JPEG
+decoding of the six files (whole for the baseline, at reduced scale for today) is timed with each inference in the
+same loop ("with decoding": the end-to-end figure of predict, the server and the C++ runner).
 """
 from __future__ import annotations
 
 import argparse
+import collections
+import json
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -28,21 +45,45 @@ sys.path.insert(0, str(ROOT))
 FRAME = ROOT.parent / "shared" / "data" / "nuscenes-frame"
 SPINNING = False  # onnxruntime worker threads busy-wait (--ort-spinning) or sleep (default, as in predict/serve)
 
+# Runs the exporter of another checkout (argv: root, checkpoint, out) with that checkout's packages: export/ and
+# serve/ install as occflownet.export / occflownet.serve, so they are mapped by hand instead of installed.
+_FOREIGN_EXPORT = """
+import importlib.util, sys
+root, ckpt, out = sys.argv[1:4]
+sys.path.insert(0, root)
+import occflownet
+for name in ("export", "serve"):
+    spec = importlib.util.spec_from_file_location(f"occflownet.{name}", f"{root}/{name}/__init__.py",
+                                                  submodule_search_locations=[f"{root}/{name}"])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+from occflownet.cli import main
+sys.exit(main(["export", "--checkpoint", ckpt, "--out", out]))
+"""
 
-def load_inputs():
-    from occflownet.contract import calibration_arrays, load_calibration
-    from occflownet.predict import load_image_folder
+
+def frame_inputs(input_size):
+    """(whole images uint8 [6, H, W, 3], K, T, decode), (reduced-scale images, K, T, decode), source: ``decode()``
+    decodes the six JPEGs (held in memory) as that path does, for the end-to-end timings."""
+    from occflownet.contract import calibration_arrays, decode_reduction, image_header, load_calibration
+    from occflownet.predict import decode_image, find_camera_images, load_frame
     from occflownet.rig import default_rig
 
-    if (FRAME / "calib.json").is_file():
-        t = time.perf_counter()
-        images = load_image_folder(FRAME)
-        decode_ms = (time.perf_counter() - t) * 1000
-        K, T = calibration_arrays(load_calibration(FRAME / "calib.json"), 1600, 900)
-        return images, K, T, decode_ms, "real nuScenes frame"
-    K, T = calibration_arrays(default_rig(1600, 900))
-    images = np.random.default_rng(0).integers(0, 256, (6, 900, 1600, 3), dtype=np.uint8)
-    return images, K, T, float("nan"), "random images (real frame not found)"
+    if not (FRAME / "calib.json").is_file():
+        K, T = calibration_arrays(default_rig(1600, 900))
+        images = np.random.default_rng(0).integers(0, 256, (6, 900, 1600, 3), dtype=np.uint8)
+        same = (images, K, T, lambda: images)
+        return same, same, "random images (no real frame)"
+    calib = load_calibration(FRAME / "calib.json")
+    blobs = [p.read_bytes() for p in find_camera_images(FRAME).values()]
+    decoded = []
+    for size in (None, input_size):
+        frame = load_frame(FRAME, size)
+        n = decode_reduction(image_header(blobs[0]), size)
+        decoded.append((frame.images, *frame.calibration_arrays(calib),
+                        lambda n=n: np.stack([decode_image(b, "image", n) for b in blobs])))
+    return decoded[0], decoded[1], "real nuScenes frame"
 
 
 def matmul_gflops(n: int = 2048, reps: int = 5) -> float:
@@ -66,89 +107,220 @@ def model_flops(model, args) -> float:
     return float(counter.get_total_flops())
 
 
-def bench_preset(name: str, runs: int, occupied: float, images, K, T, workdir: Path, variants: bool) -> dict:
-    from occflownet.export.onnx_export import export_model
-    from occflownet.export.parity import ParitySample
-    from occflownet.contract import create_session, run_session
-    from occflownet.model import create_model, get_preset
+def bench_model(name: str, occupied: float, checkpoint: str | None, inputs):
+    """The model to time: the trained checkpoint, or random-init (seed 0) with Φσ's bias shifted so that a fraction
+    ``occupied`` of the voxels of the real frame is occupied."""
+    from occflownet.model import create_model, get_preset, load_checkpoint
 
+    if checkpoint:
+        return load_checkpoint(checkpoint, expect_preset=name)[0].eval()
     model = create_model(get_preset(name), seed=0).eval()
+    images, K, T = inputs
     args = (torch.from_numpy(images)[None], torch.from_numpy(K)[None], torch.from_numpy(T)[None])
     with torch.no_grad():
         logits = torch.logit(model.inference(*args)[1]).flatten()
         cut = torch.quantile(logits[::7], 1.0 - occupied) if occupied > 0 else logits.max() + 1
         model.decoder.sigma_head[-1].bias += torch.logit(torch.tensor(model.cfg.threshold)) - cut
         model.decoder.semantic_head[-1].bias.zero_()
-    sample = ParitySample("bench", images[None], K[None], T[None])
-    t = time.perf_counter()
-    path = export_model(model, model.cfg, workdir / f"{name}.onnx", parity_samples=[sample]).path
-    export_s = time.perf_counter() - t
-    session = create_session(path, os.cpu_count(), spinning=SPINNING)
-    flops = model_flops(model, args)
-    torch_t, ort_t = [], []
-    with torch.no_grad():
-        for i in range(runs + 2):                                  # 2 warm-up rounds, alternating backends
-            tt = _timed(lambda: model.inference(*args))
-            to = _timed(lambda: run_session(session, images, K, T))
-            if i >= 2:
-                torch_t.append(tt)
-                ort_t.append(to)
-        occ, dens = run_session(session, images, K, T)
-    extra = {}
-    if variants:
-        from occflownet.export.onnx_export import agreement
-        from occflownet.export.variants import write_fp16, write_int8
+    return model
 
-        for tag, path_v in (("fp16", write_fp16(path, workdir / f"{name}.fp16.onnx")),
-                            ("int8", write_int8(path, workdir / f"{name}.int8.onnx", model.cfg))):
-            s_v = create_session(path_v, os.cpu_count(), spinning=SPINNING)
-            run_session(s_v, images, K, T)
-            times = [_timed(lambda: run_session(s_v, images, K, T)) for _ in range(max(3, runs // 2))]
-            a = agreement(occ, dens, *run_session(s_v, images, K, T))
-            extra[tag] = (float(np.median(times)), a)
-    return {"variants": extra, "preset": name, "torch_p50": np.median(torch_t), "torch_p90": np.percentile(torch_t, 90),
-            "ort_p50": np.median(ort_t), "ort_p90": np.percentile(ort_t, 90), "gflop": flops / 1e9,
-            "occupied": float(np.mean(occ != 17)), "export_s": export_s}
+
+def export_baseline_commit(rev: str, checkpoint: Path, out: Path, workdir: Path) -> Path:
+    """``rev``'s own exporter on ``checkpoint`` → ``out`` (a detached ``git worktree`` under ``workdir``, removed
+    afterwards)."""
+    tree = workdir / "baseline-tree"
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), rev], check=True,
+                   capture_output=True)
+    try:
+        proc = subprocess.run([sys.executable, "-c", _FOREIGN_EXPORT, str(tree), str(checkpoint), str(out)],
+                              capture_output=True, text=True, cwd=tree)
+        if proc.returncode != 0:
+            raise RuntimeError(f"export at {rev} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}")
+    finally:
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], capture_output=True)
+    return out
+
+
+def profile(session_path: Path, feeds: dict, runs: int, threads: int) -> tuple[dict, dict, float]:
+    """onnxruntime's profiler over ``runs`` runs (after one warm-up): ({op class: ms per run}, {node: (ms per run,
+    output shape)}, kernel ms per run)."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.add_session_config_entry("session.intra_op.allow_spinning", "1" if SPINNING else "0")
+    so.enable_profiling = True
+    so.profile_file_prefix = str(session_path.parent / f"profile-{session_path.stem}")
+    session = ort.InferenceSession(str(session_path), so, providers=["CPUExecutionProvider"])
+    for _ in range(runs + 1):
+        session.run(None, feeds)
+    events = json.loads(Path(session.end_profiling()).read_text())
+    ops, nodes = collections.Counter(), collections.Counter()
+    shapes = {}
+    for e in events:
+        if e.get("cat") == "Node" and e["name"].endswith("_kernel_time"):
+            node = e["name"][:-len("_kernel_time")]
+            ops[e["args"]["op_name"]] += e["dur"] / 1e3 / (runs + 1)
+            nodes[node] += e["dur"] / 1e3 / (runs + 1)
+            shapes[node] = e["args"].get("output_type_shape")
+    return dict(ops), {k: (v, shapes[k]) for k, v in nodes.items()}, sum(ops.values())
+
+
+def print_profile(label: str, ops: dict, nodes: dict, total: float, top: int = 12) -> None:
+    print(f"  profile {label}: kernel time {total:.1f} ms per run")
+    for op, ms in sorted(ops.items(), key=lambda kv: -kv[1])[:top]:
+        print(f"    {op:22s} {ms:8.2f} ms {100 * ms / total:5.1f} %")
+    for node, (ms, shape) in sorted(nodes.items(), key=lambda kv: -kv[1][0])[:6]:
+        print(f"      node {node:40s} {ms:7.2f} ms  {str(shape)[:70]}")
+
+
+class OpenVinoSession:
+    """OpenVINO CPU (``INFERENCE_PRECISION_HINT`` f32, as tests/test_runtimes.py) behind onnxruntime's ``run``."""
+
+    def __init__(self, path: Path, threads: int):
+        import openvino as ov
+
+        self.compiled = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_PRECISION_HINT": "f32",
+                                                                  "INFERENCE_NUM_THREADS": threads})
+
+    def run(self, names, feeds):
+        result = self.compiled(feeds)
+        return [result[self.compiled.output(n)] for n in names]
+
+
+def interleaved(graphs: list[tuple[str, object, tuple]], runs: int) -> tuple[dict, dict]:
+    """Each (label, session, (images, K, T, decode)) once per round, the order rotating, 2 warm-up rounds →
+    ({label: inference seconds}, {label: decode + inference seconds}) per run (decode: the six JPEGs as that
+    graph's code decodes them, then the inference on its result)."""
+    from occflownet.contract import run_session
+
+    infer = {label: [] for label, _, _ in graphs}
+    total = {label: [] for label, _, _ in graphs}
+    for i in range(runs + 2):
+        order = graphs[i % len(graphs):] + graphs[:i % len(graphs)]
+        for label, session, (_, K, T, decode) in order:
+            t0 = time.perf_counter()
+            images = decode()
+            t1 = time.perf_counter()
+            run_session(session, images, K, T)
+            t2 = time.perf_counter()
+            if i >= 2:
+                infer[label].append(t2 - t1)
+                total[label].append(t2 - t0)
+    return infer, total
+
+
+def build_graphs(name: str, args, model, whole, reduced, workdir: Path) -> list[tuple[str, Path, tuple]]:
+    """Export today's graph (and the requested baseline and variants) → [(label, path, inputs)]: the graphs to
+    time, each with the inputs its own code would feed it (the first is today's, the reference of the ratios)."""
+    from occflownet.export.onnx_export import export_model
+    from occflownet.export.parity import ParitySample
+    from occflownet.model import save_checkpoint
+
+    path = workdir / f"{name}.onnx"
+    sample = ParitySample("bench", reduced[0][None], reduced[1][None], reduced[2][None])   # (images, K, T, …)
+    export_model(model, model.cfg, path, parity_samples=[sample])
+    graphs = [("today", path, reduced), ("today, whole images", path, whole)]
+    if args.baseline or args.baseline_commit:
+        base = Path(args.baseline) if args.baseline else workdir / f"{name}.baseline.onnx"
+        if args.baseline_commit:
+            ckpt = workdir / f"{name}.pt"
+            save_checkpoint(ckpt, model, model.cfg)
+            export_baseline_commit(args.baseline_commit, ckpt, base, workdir)
+        graphs.append((f"baseline {args.baseline_commit or base.name}, whole images", base, whole))
+    wanted = [] if args.variants is None else (args.variants or ["int8", "fp16"])
+    if "int8" in wanted:
+        from occflownet.export.variants import write_int8
+
+        int8 = write_int8(path, workdir / f"{name}.int8.onnx", model.cfg, frame=FRAME if FRAME.is_dir() else None)
+        graphs.append(("today int8", int8, reduced))
+    if "fp16" in wanted:
+        from occflownet.export.variants import write_fp16
+
+        graphs.append(("today fp16", write_fp16(path, workdir / f"{name}.fp16.onnx"), reduced))
+    return graphs
+
+
+def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -> None:
+    from occflownet.contract import create_session, make_feeds, run_session
+    from occflownet.export.onnx_export import agreement
+
+    model = bench_model(name, args.occupied, args.checkpoint, reduced[:3])
+    t = time.perf_counter()
+    graphs = build_graphs(name, args, model, whole, reduced, workdir)
+    print(f"{name}: exported in {time.perf_counter() - t:.0f} s; {len(graphs)} graphs, {args.runs} interleaved runs",
+          flush=True)
+    if args.openvino:
+        graphs += [(f"{label} [OpenVINO]", path, inputs) for label, path, inputs in graphs
+                   if label in ("today", "today int8")]
+    sessions = [(label, OpenVinoSession(path, threads) if label.endswith("[OpenVINO]")
+                 else create_session(path, threads, spinning=SPINNING), inputs) for label, path, inputs in graphs]
+    times, totals = interleaved(sessions, args.runs)
+    ref = run_session(sessions[0][1], *reduced[:3])
+    first, first_total = np.median(times[graphs[0][0]]), np.median(totals[graphs[0][0]])
+    flops = model_flops(model, tuple(torch.from_numpy(a)[None] for a in reduced[:3]))
+    print(f"{name}: {flops / 1e9:.2f} GFLOP (torch FLOP counter on the reduced-scale frame); fp32 occupied "
+          f"{100 * np.mean(ref[0] != 17):.1f} % of voxels")
+    for (label, session, inputs), (_, path, _) in zip(sessions, graphs):
+        p50, total = np.median(times[label]), np.median(totals[label])
+        out = run_session(session, *inputs[:3])
+        a = agreement(ref[0], ref[1], out[0], out[1])
+        print(f"  {label:42s} p50 {p50 * 1e3:8.1f} ms (p90 {np.percentile(times[label], 90) * 1e3:7.1f}), "
+              f"{p50 / first:5.2f}x of today | with decoding p50 {total * 1e3:8.1f} ms, {total / first_total:5.2f}x "
+              f"of today | {flops / 1e9 / p50:5.1f} GFLOP/s | vs today: {100 * a['occupancy_equal_fraction']:.3f} % "
+              f"voxels equal, density max |d| {a['density_max_abs_diff']:.1e}", flush=True)
+    if args.profile:
+        for label, path, inputs in graphs:
+            if label.endswith("[OpenVINO]"):
+                continue
+            print_profile(label, *profile(path, make_feeds(*(x[None] for x in inputs[:3])), args.profile_runs,
+                                          threads))
+    if args.torch:
+        targs = tuple(torch.from_numpy(a)[None] for a in reduced[:3])
+        with torch.no_grad():
+            model.inference(*targs)
+            tt = [_timed(lambda: model.inference(*targs)) for _ in range(max(3, args.runs // 4))]
+        print(f"  torch eager (reduced-scale frame)            p50 {np.median(tt) * 1e3:8.1f} ms")
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     from occflownet.choices import PRESET_NAMES
 
-    p.add_argument("--presets", nargs="+", default=["tiny", "base"], choices=PRESET_NAMES)
-    p.add_argument("--runs", type=int, default=20, help="timed runs per backend (after 2 warm-up runs)")
+    p.add_argument("--presets", nargs="+", default=["tiny"], choices=PRESET_NAMES)
+    p.add_argument("--runs", type=int, default=15, help="timed interleaved runs per graph (after 2 warm-up rounds)")
     p.add_argument("--occupied", type=float, default=0.25, help="fraction of occupied voxels to simulate")
-    p.add_argument("--variants", action="store_true", help="also time the fp16 and int8 graphs")
+    p.add_argument("--checkpoint", help="time this trained checkpoint (of the one preset given) instead")
+    p.add_argument("--baseline", help="an ONNX file of the same preset and weights to time beside today's")
+    p.add_argument("--baseline-commit", help="export the same weights with this commit's code (git worktree)")
+    p.add_argument("--variants", nargs="*", choices=["int8", "fp16"], default=None,
+                   help="also time today's reduced-precision graphs (no value: both)")
+    p.add_argument("--profile", action="store_true", help="print onnxruntime's per-op profile of each graph")
+    p.add_argument("--profile-runs", type=int, default=5)
+    p.add_argument("--torch", action="store_true", help="also time torch eager")
+    p.add_argument("--openvino", action="store_true", help="also run today's fp32 (and int8) graph on OpenVINO CPU")
+    p.add_argument("--keep", help="write the graphs into this folder and keep them (a baseline for later runs)")
+    p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     p.add_argument("--ort-spinning", action="store_true", help="let onnxruntime's idle threads busy-wait")
     args = p.parse_args(argv)
     global SPINNING
     SPINNING = args.ort_spinning
-    cores = os.cpu_count() or 1
-    torch.set_num_threads(cores)
-    images, K, T, decode_ms, source = load_inputs()
-    print(f"inputs: {source}, 6x{images.shape[2]}x{images.shape[1]} uint8; JPEG decode of the six files "
-          f"{decode_ms:.0f} ms (not included below)")
-    print(f"threads: torch {torch.get_num_threads()}, onnxruntime {cores} (spinning {SPINNING}); load average "
-          f"{os.getloadavg()[0]:.2f} at start")
-    peak = matmul_gflops()
-    print(f"fp32 matmul 2048^3 (torch): {peak:.1f} GFLOP/s")
-    rows = []
+    torch.set_num_threads(args.threads)
+    print(f"threads {args.threads} (onnxruntime spinning {SPINNING}); load average {os.getloadavg()[0]:.2f} at start")
+    print(f"fp32 matmul 2048^3 (torch): {matmul_gflops():.1f} GFLOP/s at start", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
+        if args.keep:
+            tmp = args.keep
+            Path(tmp).mkdir(parents=True, exist_ok=True)
         for name in args.presets:
-            runs = args.runs if name == "tiny" else max(3, args.runs // 4)
-            r = bench_preset(name, runs, args.occupied, images, K, T, Path(tmp), args.variants)
-            rows.append(r)
-            print(f"{name}: torch eager p50 {r['torch_p50'] * 1e3:.1f} ms p90 {r['torch_p90'] * 1e3:.1f} ms | "
-                  f"onnxruntime p50 {r['ort_p50'] * 1e3:.1f} ms p90 {r['ort_p90'] * 1e3:.1f} ms | "
-                  f"torch/ort {r['torch_p50'] / r['ort_p50']:.2f}x | {r['gflop']:.1f} GFLOP -> "
-                  f"torch {r['gflop'] / r['torch_p50']:.1f} GFLOP/s, ort {r['gflop'] / r['ort_p50']:.1f} GFLOP/s "
-                  f"({100 * r['gflop'] / r['ort_p50'] / peak:.0f}% of matmul) | occupied "
-                  f"{100 * r['occupied']:.0f}% | export {r['export_s']:.0f} s", flush=True)
-            for tag, (p50, a) in r["variants"].items():
-                print(f"  {name} {tag}: onnxruntime p50 {p50 * 1e3:.1f} ms; vs fp32: occupancy equal "
-                      f"{100 * a['occupancy_equal_fraction']:.2f}% of voxels, density max abs diff "
-                      f"{a['density_max_abs_diff']:.3f}", flush=True)
-    print(f"load average at end {os.getloadavg()[0]:.2f}")
+            from occflownet.model import get_preset
+
+            whole, reduced, source = frame_inputs(get_preset(name).input_size)
+            print(f"{name}: inputs {source}: whole 6x{whole[0].shape[2]}x{whole[0].shape[1]}, as today's paths "
+                  f"decode them 6x{reduced[0].shape[2]}x{reduced[0].shape[1]}")
+            bench_preset(name, args, whole, reduced, Path(tmp), args.threads)
+    print(f"fp32 matmul 2048^3 (torch): {matmul_gflops():.1f} GFLOP/s at end; load average "
+          f"{os.getloadavg()[0]:.2f}")
     return 0
 
 

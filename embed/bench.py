@@ -2,8 +2,9 @@
 
     python embed/bench.py --model m.onnx [--images DIR] [--calib calib.json] [--runs 20] [--rounds 3] [--threads 2]
 
-Both sides: the six JPEGs are read once; each timed run decodes them (C++: libjpeg-turbo into the input buffer;
-Python: OpenCV imdecode + RGB + np.stack, as `occflownet predict`) and runs one inference with the same session
+Both sides: the six JPEGs are read once; each timed run decodes them at the contract's reduced scale for the
+model (``occflownet.contract.decode_reduction``; C++: libjpeg-turbo's DCT scaling into the input buffer; Python:
+OpenCV imdecode IMREAD_REDUCED_COLOR_n + RGB + np.stack, as `occflownet predict`) and runs one inference with the same session
 settings (intra-op threads, spinning off, all graph optimisations). Each round runs both sides, alternating which
 goes first (C++ in a fresh process; one warm-up run each); p50s per round and the median over rounds are printed with the load average.
 """
@@ -23,14 +24,18 @@ FRAME = REPO.parent / "shared" / "data" / "nuscenes-frame"
 
 
 def python_round(model: Path, images_dir: Path, calib: Path, runs: int, threads: int) -> tuple[float, float]:
-    from occflownet.contract import calibration_arrays, create_session, load_calibration, run_session
+    from occflownet.contract import (calibration_arrays, check_session, create_session, decode_reduction,
+                                     image_header, load_calibration, run_session)
     from occflownet.predict import decode_image, find_camera_images
 
     session = create_session(model, threads=threads)
+    input_size = check_session(session, str(model)).input_size
     blobs = [(p.read_bytes(), str(p)) for p in find_camera_images(images_dir).values()]
-    decode = lambda: np.stack([decode_image(b, n) for b, n in blobs])  # noqa: E731
+    header = image_header(blobs[0][0])
+    scale = decode_reduction(header, input_size)
+    decode = lambda: np.stack([decode_image(b, n, scale) for b, n in blobs])  # noqa: E731
     images = decode()
-    K, T = calibration_arrays(load_calibration(calib), images.shape[2], images.shape[1])
+    K, T = calibration_arrays(load_calibration(calib), header.width, header.height, reduction=scale)
     run_session(session, images, K, T)  # warm-up
     total, infer = [], []
     for _ in range(runs):

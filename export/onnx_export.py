@@ -119,16 +119,19 @@ def trace_to_onnx(module: torch.nn.Module, inputs: tuple, path: Path, input_name
 
 
 def deterministic_scatter_add(proto: onnx.ModelProto) -> int:
-    """Rewrite, in place, each ``ScatterND(data [R, C], indices [N, 1], updates [N, C], reduction="add")`` as
-    ``ScatterElements(data, Expand(indices, Shape(updates)) [N, C], updates, axis=0, reduction="add")``; returns
-    the number of nodes rewritten.
+    """Rewrite, in place, each ``ScatterND(data [R, C], indices [N, 1], updates [N, C], reduction="add")`` as a
+    1-D ``ScatterElements(data [R·C], indices·C + [0 .. C) [N·C], updates [N·C], axis=0, reduction="add")``
+    (:func:`_flat_scatter_add`); returns the number of nodes rewritten.
 
     Both compute ``data[indices[i, 0], c] += updates[i, c]``. Why: onnxruntime's CPU ScatterND (1.32) hands blocks of
     ``indices`` to its intra-op threads and adds with plain read-modify-writes, so two threads hitting the same voxel
     can lose an update — measured on a synthetic pooling (69,120 updates into 200 rows, 2 threads): 5 of 20 runs
     wrong by up to 14.7 (whole updates lost), on the trained tiny export density errors of 1e-3–5e-3 at random.
     Its ScatterElements kernel is single-threaded and adds in index order, which is also the order of torch's CPU
-    ``index_add``: the pooled sums are bit-identical to torch's on every run. Only the 2-D pooling form the
+    ``index_add``: the pooled sums are bit-identical to torch's on every run. The 1-D form adds the same values in
+    the same order, but onnxruntime's kernel walks a 1-D index about 4x faster than the 2-D one (per-element offset
+    arithmetic over one axis instead of two; measured 135 vs 35 ms for 34,560 x 32 updates on the loaded 2-core
+    machine, docs/model.md). Only the 2-D pooling form the
     exporter writes for ``index_add`` is accepted; any other ScatterND with a reduction is an ExportError.
     """
     inferred = onnx.shape_inference.infer_shapes(proto).graph
@@ -147,17 +150,43 @@ def deterministic_scatter_add(proto: onnx.ModelProto) -> int:
             raise ExportError(f"ScatterND {node.name!r} (reduction {reduction}) is not the 2-D pooling form "
                               f"data [R, C], indices [N, 1], updates [N, C] (got {data}, {indices}, {updates}); "
                               "cannot make it deterministic")
-        data, indices, updates = node.input
-        base = node.name or f"scatter_add_{rewritten}"
-        shape, expanded = f"{base}_updates_shape", f"{base}_indices_expanded"
-        nodes.append(onnx.helper.make_node("Shape", [updates], [shape], name=f"{base}_shape"))
-        nodes.append(onnx.helper.make_node("Expand", [indices, shape], [expanded], name=f"{base}_expand"))
-        nodes.append(onnx.helper.make_node("ScatterElements", [data, expanded, updates], list(node.output),
-                                           name=f"{base}_elements", axis=0, reduction=reduction))
+        nodes += _flat_scatter_add(node, node.name or f"scatter_add_{rewritten}", reduction)
         rewritten += 1
     del proto.graph.node[:]
     proto.graph.node.extend(nodes)
     return rewritten
+
+
+def _flat_scatter_add(node: onnx.NodeProto, base: str, reduction: str) -> list[onnx.NodeProto]:
+    """The nodes of one pooling ScatterND(data [R, C], indices [N, 1], updates [N, C]) as a 1-D ScatterElements:
+    ``flat = indices · C + [0 .. C)`` [N, C] → [N·C]; data and updates flattened (Reshape, no copy); the result
+    reshaped to data's shape. Element ``(i, c)`` of the updates lands on ``indices[i]·C + c`` in the order of
+    the flattened updates, so every output element receives its updates in increasing i: the order of the 2-D
+    form and of torch's ``index_add``."""
+    data, indices, updates = node.input
+    make = onnx.helper.make_node
+    t = {k: f"{base}_{k}" for k in ("c", "c0", "zero", "one", "range", "rows", "flat2", "flat", "minus1",
+                                    "data1", "updates1", "out1", "data_shape")}
+    const = [(t["zero"], 0), (t["one"], 1)]
+    nodes = [make("Constant", [], [name], name=name, value=onnx.helper.make_tensor(name, onnx.TensorProto.INT64,
+                                                                                   [], [v])) for name, v in const]
+    nodes.append(make("Constant", [], [t["minus1"]], name=t["minus1"],
+                      value=onnx.helper.make_tensor(t["minus1"], onnx.TensorProto.INT64, [1], [-1])))
+    nodes += [
+        make("Shape", [updates], [t["c"]], name=t["c"], start=1, end=2),                    # [C]
+        make("Squeeze", [t["c"]], [t["c0"]], name=t["c0"]),                                 # C
+        make("Range", [t["zero"], t["c0"], t["one"]], [t["range"]], name=t["range"]),      # [C]
+        make("Mul", [indices, t["c"]], [t["rows"]], name=t["rows"]),                        # [N, 1]
+        make("Add", [t["rows"], t["range"]], [t["flat2"]], name=t["flat2"]),               # [N, C]
+        make("Reshape", [t["flat2"], t["minus1"]], [t["flat"]], name=t["flat"]),           # [N·C]
+        make("Reshape", [data, t["minus1"]], [t["data1"]], name=t["data1"]),               # [R·C]
+        make("Reshape", [updates, t["minus1"]], [t["updates1"]], name=t["updates1"]),      # [N·C]
+        make("ScatterElements", [t["data1"], t["flat"], t["updates1"]], [t["out1"]], name=f"{base}_elements",
+             axis=0, reduction=reduction),
+        make("Shape", [data], [t["data_shape"]], name=t["data_shape"]),
+        make("Reshape", [t["out1"], t["data_shape"]], list(node.output), name=f"{base}_reshape"),
+    ]
+    return nodes
 
 
 def portable_resize(proto: onnx.ModelProto) -> None:

@@ -93,9 +93,21 @@ def frame_sample(folder: str | Path, batch: int = 1) -> ParitySample:
                         np.stack([T, turn @ T]))
 
 
+def inference_frame_sample(folder: str | Path, cfg: ModelConfig) -> ParitySample:
+    """A real frame folder as the inference paths feed it to a model of ``cfg`` (JPEGs at reduced scale with the
+    1/n intrinsics rule, ``occflownet.contract.decode_reduction``), batch 1."""
+    from occflownet.predict import load_frame
+
+    folder = Path(folder)
+    frame = load_frame(folder, tuple(cfg.input_size))
+    K, T = frame.calibration_arrays(load_calibration(folder / "calib.json"))
+    return ParitySample(f"frame:{folder.name}@1/{frame.reduction}", frame.images[None], K[None], T[None])
+
+
 def default_parity_samples(cfg: ModelConfig, frames: list | None = None, seed: int = 0) -> list[ParitySample]:
     """Random images at the default calibration's size (batch 1 and 2), at 1600x900 with two different
-    calibrations in one batch, plus each real frame folder of ``frames`` (batch 1 and 2)."""
+    calibrations in one batch, plus each real frame folder of ``frames`` (batch 1 and 2 decoded whole, and batch 1
+    as the inference paths decode it)."""
     rng = np.random.default_rng(seed)
     w, h = (int(v) for v in cfg.default_calibration["image_size"])
     K, T = calibration_arrays(cfg.default_calibration)
@@ -107,7 +119,7 @@ def default_parity_samples(cfg: ModelConfig, frames: list | None = None, seed: i
     K2, T2 = _stack([second_calibration(1600, 900), default_rig(1600, 900)], 1600, 900)
     samples.append(ParitySample("random-1600x900-two-rigs-b2", _random_images(rng, 2, 900, 1600), K2, T2))
     for folder in frames or []:
-        samples += [frame_sample(folder, 1), frame_sample(folder, 2)]
+        samples += [frame_sample(folder, 1), frame_sample(folder, 2), inference_frame_sample(folder, cfg)]
     return samples
 
 

@@ -2,8 +2,13 @@
 
 - fp16: weights and activations in float16 (``onnxruntime.transformers.float16``); inputs/outputs keep their
   contract-v1 types, and the geometry/pooling/threshold ops stay in float32 (their indices must be exact).
-- int8: static QDQ quantisation (``onnxruntime.quantization.quantize_static``) of Conv/MatMul/Gemm only,
-  per-channel weights, activations calibrated on synthetic samples (random images, default and turned rigs).
+- int8: static QDQ quantisation (``onnxruntime.quantization.quantize_static``) of the convolutions only
+  (:data:`INT8_OP_TYPES`), per-channel int8 weights with 7-bit range (:data:`INT8_REDUCE_RANGE`), uint8
+  activations calibrated (MinMax) on real-looking frames (:class:`_CalibrationReader`: the ``frame`` folder as the
+  inference paths decode it — JPEGs at reduced scale — with photometric variations and turned rigs, else
+  synthetic samples). The per-voxel layers (Gemm: the depth-to-space projection and the heads Φσ, Φs) and the
+  image resampling MatMuls stay float32: σ ≥ τ and the argmax are decided there, and they are memory-bound
+  (int8 would add quantise/dequantise passes over 640,000-row tensors and gain nothing).
 
 Agreement with fp32 on the evaluation sample (the real frame when given, else a random one): fraction of equal
 occupancy voxels and density max abs diff. A variant that onnxruntime cannot load or that is not standard ONNX
@@ -19,7 +24,7 @@ import numpy as np
 import onnx
 
 from occflownet.export.onnx_export import ExportError, agreement, validate_proto
-from occflownet.export.parity import default_parity_samples, frame_sample
+from occflownet.export.parity import default_parity_samples, inference_frame_sample
 from occflownet.contract import create_session, run_session
 from occflownet.model import ModelConfig
 from occflownet.occ3d import FREE
@@ -100,12 +105,41 @@ def activation_matmuls(proto: onnx.ModelProto) -> list[str]:
     return [n.name for n in proto.graph.node if n.op_type == "MatMul" and not any(i in inits for i in n.input)]
 
 
-class _SyntheticReader:
-    """onnxruntime CalibrationDataReader over synthetic samples (batch 1 each)."""
+INT8_OP_TYPES = ["Conv"]
+# 7-bit weights: onnxruntime's u8s8 kernels on AVX2 CPUs without VNNI (this AMD EPYC: avx2, no avx512/vnni) sum
+# pairs of u8·s8 products in int16 (vpmaddubsw), which saturates with 8-bit weights; reduce_range avoids it.
+INT8_REDUCE_RANGE = True
 
-    def __init__(self, cfg: ModelConfig, count: int):
+
+def calibration_frames(folder: str | Path, cfg: ModelConfig, count: int) -> list[dict]:
+    """``count`` batch-1 feeds made from one real frame as the inference paths decode it (JPEGs at reduced scale for
+    ``cfg.input_size``): brightness/contrast varied (×0.6 … ×1.3 around mid-grey) and the rig turned about ego z,
+    so the activation ranges cover other lighting and other voxels than the frame itself."""
+    from occflownet.contract import load_calibration
+    from occflownet.geometry import rotation_z
+    from occflownet.predict import load_frame
+
+    folder = Path(folder)
+    frame = load_frame(folder, tuple(cfg.input_size))
+    K, T = frame.calibration_arrays(load_calibration(folder / "calib.json"))
+    feeds = []
+    for i in range(count):
+        gain = (0.6, 1.3, 0.85, 1.1, 0.75, 1.2)[i % 6]
+        images = np.clip((frame.images.astype(np.float32) - 128.0) * gain + 128.0 + 8.0 * (i % 3 - 1), 0, 255)
+        turn = rotation_z(np.radians(-60.0 + 120.0 * i / max(1, count - 1))).astype(np.float32)
+        feeds.append({"images": images.astype(np.uint8)[None], "intrinsics": K[None], "cam2ego": (turn @ T)[None]})
+    return feeds
+
+
+class _CalibrationReader:
+    """onnxruntime CalibrationDataReader: ``count`` batch-1 feeds from the real-looking ``frame``
+    (:func:`calibration_frames`), else synthetic samples (random images, default and turned rigs)."""
+
+    def __init__(self, cfg: ModelConfig, count: int, frame: str | Path | None = None):
         self.samples = []
-        for s in default_parity_samples(cfg, [], seed=11):
+        if frame is not None:
+            self.samples = calibration_frames(frame, cfg, count)
+        for s in default_parity_samples(cfg, [], seed=11) if frame is None else []:
             for b in range(s.images.shape[0]):
                 self.samples.append({"images": s.images[b:b + 1], "intrinsics": s.intrinsics[b:b + 1],
                                      "cam2ego": s.cam2ego[b:b + 1]})
@@ -119,16 +153,19 @@ class _SyntheticReader:
         self._it = iter(self.samples)
 
 
-def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int = 4) -> Path:
+def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int = 6,
+               frame: str | Path | None = None) -> Path:
+    """The int8 QDQ variant of ``src`` (see the module docstring), calibrated on ``frame`` (a real frame folder)
+    when given, else on synthetic samples."""
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
     root = logging.getLogger()
     level = root.level
     root.setLevel(logging.ERROR)   # the quantiser logs a "consider pre-processing" advice on the root logger
     try:
-        quantize_static(str(src), str(dst), _SyntheticReader(cfg, calibration_samples),
-                        quant_format=QuantFormat.QDQ, op_types_to_quantize=["Conv", "MatMul", "Gemm"],
-                        nodes_to_exclude=activation_matmuls(onnx.load(str(src))),
+        quantize_static(str(src), str(dst), _CalibrationReader(cfg, calibration_samples, frame),
+                        quant_format=QuantFormat.QDQ, op_types_to_quantize=INT8_OP_TYPES,
+                        nodes_to_exclude=activation_matmuls(onnx.load(str(src))), reduce_range=INT8_REDUCE_RANGE,
                         per_channel=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         calibrate_method=CalibrationMethod.MinMax)
     finally:
@@ -145,11 +182,11 @@ def write_variants(fp32_path: str | Path, cfg: ModelConfig, fp16: bool = False, 
                    frame: str | Path | None = None) -> list[str]:
     """Write the requested variants beside ``fp32_path``; returns one report line per variant."""
     fp32_path = Path(fp32_path)
-    sample = frame_sample(frame, 1) if frame else default_parity_samples(cfg, [], seed=5)[0]
+    sample = inference_frame_sample(frame, cfg) if frame else default_parity_samples(cfg, [], seed=5)[0]
     reference = run_session(create_session(fp32_path), sample.images, sample.intrinsics, sample.cam2ego)
     lines = []
     todo = [("fp16", write_fp16, ())] if fp16 else []
-    todo += [("int8", write_int8, (cfg,))] if int8 else []
+    todo += [("int8", write_int8, (cfg, 6, frame))] if int8 else []
     for tag, writer, extra in todo:
         dst = _with_suffix(fp32_path, tag)
         try:

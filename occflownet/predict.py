@@ -8,24 +8,42 @@ only inside :func:`model_from_source` and :func:`predict_torch`, so the onnxrunt
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from occflownet.contract import decode_rgb
+from occflownet.contract import calibration_arrays, decode_reduction, decode_rgb, image_header
 from occflownet.occ3d import CAMERAS, FREE, GRID
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 
 # ----------------------------------------------------------------------------------------------- inputs
-def decode_image(data: bytes, name: str = "image") -> np.ndarray:
+def decode_image(data: bytes, name: str = "image", reduction: int = 1) -> np.ndarray:
     """JPEG/PNG bytes → uint8 RGB [H, W, 3] by the contract's rule (:func:`occflownet.contract.decode_rgb`: EXIF
-    orientation ignored); ValueError naming ``name`` if it cannot be decoded."""
-    rgb = decode_rgb(data)
+    orientation ignored; a JPEG at 1/``reduction``); ValueError naming ``name`` if it cannot be decoded."""
+    rgb = decode_rgb(data, reduction)
     if rgb is None:
         raise ValueError(f"{name}: not a decodable JPEG/PNG image")
     return rgb
+
+
+@dataclass(frozen=True)
+class Frame:
+    """Six camera images as an inference path decodes them: ``images`` uint8 [6, h, w, 3] RGB in ``CAMERAS``
+    order, decoded at 1/``reduction`` from files of ``stored_size`` (W, H) (the contract's reduced-scale JPEG
+    rule, :func:`occflownet.contract.decode_reduction`; 1 = whole)."""
+
+    images: np.ndarray
+    stored_size: tuple[int, int]
+    reduction: int
+
+    def calibration_arrays(self, calib: dict) -> tuple[np.ndarray, np.ndarray]:
+        """(intrinsics float32 [6, 3, 3] for the decoded images, cam2ego float32 [6, 4, 4]) from calibration JSON
+        (for the stored size or one of its aspect ratio; scaled by 1/``reduction`` exactly)."""
+        w, h = self.stored_size
+        return calibration_arrays(calib, w, h, reduction=self.reduction)
 
 
 def find_camera_images(folder: str | Path) -> dict[str, Path]:
@@ -46,14 +64,33 @@ def find_camera_images(folder: str | Path) -> dict[str, Path]:
     return found
 
 
-def load_image_folder(folder: str | Path) -> np.ndarray:
-    """Six camera images of ``folder`` → uint8 [6, H, W, 3] RGB in ``CAMERAS`` order (all the same size)."""
-    images = [decode_image(p.read_bytes(), str(p)) for p in find_camera_images(folder).values()]
-    sizes = {im.shape for im in images}
+def load_frame(folder: str | Path, input_size: tuple[int, int] | None = None) -> Frame:
+    """Six camera images of ``folder`` (all the same size) as the inference paths decode them for a model whose
+    network input is ``input_size`` [H, W] (JPEGs at reduced scale, :func:`occflownet.contract.decode_reduction`);
+    ``input_size=None`` decodes every image whole."""
+    blobs = [(p.read_bytes(), str(p)) for p in find_camera_images(folder).values()]
+    headers = []
+    for data, name in blobs:
+        try:
+            headers.append(image_header(data))
+        except ValueError as exc:
+            raise ValueError(f"{name}: not a decodable JPEG/PNG image ({exc})") from None
+    reductions = [decode_reduction(hd, input_size) for hd in headers]
+    sizes = {(hd.width, hd.height, n) for hd, n in zip(headers, reductions)}
     if len(sizes) != 1:
+        detail = ", ".join(f"{c}: {hd.width}x{hd.height} {hd.format}" for c, hd in zip(CAMERAS, headers))
+        raise ValueError(f"{folder}: camera images differ in size ({detail}); all six must match")
+    images = [decode_image(data, name, n) for (data, name), n in zip(blobs, reductions)]
+    if len({im.shape for im in images}) != 1:
         detail = ", ".join(f"{c}: {im.shape[1]}x{im.shape[0]}" for c, im in zip(CAMERAS, images))
         raise ValueError(f"{folder}: camera images differ in size ({detail}); all six must match")
-    return np.stack(images)
+    return Frame(np.stack(images), (headers[0].width, headers[0].height), reductions[0])
+
+
+def load_image_folder(folder: str | Path) -> np.ndarray:
+    """Six camera images of ``folder`` → uint8 [6, H, W, 3] RGB in ``CAMERAS`` order, decoded whole (all the same
+    size)."""
+    return load_frame(folder).images
 
 
 # ----------------------------------------------------------------------------------------------- torch model

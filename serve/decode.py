@@ -1,7 +1,9 @@
 """Camera images of a request: header sniffing (size before decoding), OpenCV decoding, a common tensor size.
 
-- :func:`image_header` reads the pixel size from the JPEG SOF / PNG IHDR header without decoding, so an image whose
-  header claims more pixels than the limit is refused before any pixel buffer is allocated.
+- :func:`image_header` (the contract's, :mod:`occflownet.contract.images`) reads the pixel size from the JPEG SOF /
+  PNG IHDR header without decoding, so an image whose header claims more pixels than the limit is refused before
+  any pixel buffer is allocated; the same header gives the scale a JPEG is decoded at for the model
+  (:func:`decode_reduction`, :func:`decoded_size`: libjpeg-turbo's DCT scaling, as ``predict`` and the C++ runner).
 - :func:`decode_image` decodes to RGB uint8 [H, W, 3] as stored (EXIF orientation is ignored: calibrations refer to
   the sensor's pixel grid), refusing truncated files (JPEG without EOI after the scan, PNG without IEND).
 - the graph takes one [6, H, W, 3] tensor, so when the six images differ in size each one is resized to the
@@ -11,19 +13,16 @@
 """
 from __future__ import annotations
 
-import struct
 from collections import Counter
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-from occflownet.contract import decode_rgb, scale_intrinsics
+from occflownet.contract import ImageHeader, decode_reduction, decode_rgb, image_header, reduced_size, scale_intrinsics
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-# JPEG start-of-frame markers (baseline, extended, progressive, lossless, arithmetic); not DHT (C4), JPG (C8), DAC (CC).
-_SOF_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
-_STANDALONE = {0x01, *range(0xD0, 0xD8)}  # TEM, RST0..7: markers without a length field
+__all__ = ["ImageError", "ImageHeader", "check_header", "common_size", "decode_image", "decode_reduction",
+           "decoded_size", "image_header", "intrinsics_for_size"]
+
 
 
 class ImageError(ValueError):
@@ -33,67 +32,6 @@ class ImageError(ValueError):
         super().__init__(f"{camera}: {message}")
         self.camera = camera
         self.status = status
-
-
-@dataclass(frozen=True)
-class ImageHeader:
-    format: str       # "jpeg" or "png"
-    width: int
-    height: int
-    data_start: int   # JPEG: offset of the first scan (SOS); PNG: offset after IHDR
-
-
-def _jpeg_header(data: bytes) -> ImageHeader:
-    pos, size, n = 2, None, len(data)
-    while pos < n:
-        if data[pos] != 0xFF:
-            raise ValueError(f"corrupt JPEG: expected a marker at byte {pos}")
-        while pos < n and data[pos] == 0xFF:  # fill bytes
-            pos += 1
-        if pos >= n:
-            break
-        marker = data[pos]
-        pos += 1
-        if marker in _STANDALONE:
-            continue
-        if marker == 0xD9:
-            break
-        if pos + 2 > n:
-            break
-        (length,) = struct.unpack(">H", data[pos:pos + 2])
-        if length < 2:
-            raise ValueError("corrupt JPEG: segment length < 2")
-        if marker in _SOF_MARKERS:
-            if pos + 7 > n:
-                break
-            height, width = struct.unpack(">HH", data[pos + 3:pos + 7])
-            size = (width, height)
-        if marker == 0xDA:  # start of scan: entropy-coded data follows
-            if size is None:
-                raise ValueError("corrupt JPEG: scan before any frame header")
-            if size[0] == 0 or size[1] == 0:
-                raise ValueError("JPEG with zero or deferred (DNL) dimensions is not supported")
-            return ImageHeader("jpeg", size[0], size[1], pos)
-        pos += length
-    raise ValueError("truncated JPEG: no complete frame header and scan")
-
-
-def _png_header(data: bytes) -> ImageHeader:
-    if len(data) < 33 or data[12:16] != b"IHDR":
-        raise ValueError("truncated PNG: no IHDR chunk")
-    width, height = struct.unpack(">II", data[16:24])
-    if width == 0 or height == 0:
-        raise ValueError("PNG with zero width or height")
-    return ImageHeader("png", width, height, 33)
-
-
-def image_header(data: bytes) -> ImageHeader:
-    """Format and (width, height) from the header alone. Raises ValueError for anything but JPEG or PNG."""
-    if data[:2] == b"\xff\xd8":
-        return _jpeg_header(data)
-    if data[:8] == PNG_SIGNATURE:
-        return _png_header(data)
-    raise ValueError("not a JPEG or PNG image (unrecognised signature)")
 
 
 def _complete(data: bytes, header: ImageHeader) -> bool:
@@ -122,18 +60,26 @@ def check_header(camera: str, data: bytes, max_pixels: int) -> ImageHeader:
     return header
 
 
-def decode_image(camera: str, data: bytes, max_pixels: int, out: np.ndarray | None = None) -> np.ndarray:
-    """One image part → RGB uint8 [H, W, 3], after :func:`check_header`. Raises ImageError naming ``camera``.
+def decoded_size(header: ImageHeader, reduction: int) -> tuple[int, int]:
+    """(w, h) of the image of ``header`` decoded at 1/``reduction`` (the header's size when 1)."""
+    return reduced_size(header.width, header.height, reduction)
+
+
+def decode_image(camera: str, data: bytes, max_pixels: int, out: np.ndarray | None = None,
+                 reduction: int = 1) -> np.ndarray:
+    """One image part → RGB uint8 [H, W, 3] (a JPEG at 1/``reduction``, :func:`decode_reduction`), after
+    :func:`check_header`. Raises ImageError naming ``camera``.
 
     With ``out`` (uint8 [h, w, 3], e.g. one camera's slice of the frame tensor) the RGB pixels are written there,
     resized to (w, h) when the image's size differs (INTER_AREA when shrinking, INTER_LINEAR when enlarging)."""
     header = check_header(camera, data, max_pixels)
-    rgb = decode_rgb(data)                        # the contract's rule: EXIF orientation ignored
+    rgb = decode_rgb(data, reduction)             # the contract's rule: EXIF orientation ignored
     if rgb is None:
         raise ImageError(camera, f"{header.format.upper()} could not be decoded (corrupt data)")
-    if rgb.shape[:2] != (header.height, header.width):
+    w, h = decoded_size(header, reduction)
+    if rgb.shape[:2] != (h, w):
         raise ImageError(camera, f"decoded size {rgb.shape[1]}x{rgb.shape[0]} disagrees with the header's "
-                                 f"{header.width}x{header.height}")
+                                 f"{header.width}x{header.height} at 1/{reduction}")
     if out is None:
         return rgb
     if rgb.shape == out.shape:

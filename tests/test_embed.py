@@ -78,29 +78,31 @@ def assert_no_sanitizer_report(proc: subprocess.CompletedProcess) -> None:
 
 
 # ----------------------------------------------------------------------------------------------- Python side
-def python_calibration(calib_path: Path, width: int, height: int):
-    """(intrinsics float32 [6, 3, 3], cam2ego [6, 4, 4]) by the Python rule in force, imported when called:
-    ``occflownet.contract.calibration_arrays`` (the torch-free contract module) where it exists, else
-    ``occflownet.contract.calibration_arrays``."""
-    calib = json.loads(Path(calib_path).read_text())
-    try:
-        from occflownet.contract import calibration_arrays
-    except ImportError:
-        from occflownet.contract import calibration_arrays
+def python_calibration(calib_path: Path, width: int, height: int, reduction: int = 1):
+    """(intrinsics float32 [6, 3, 3], cam2ego [6, 4, 4]) by the Python rule (``occflownet.contract``) for images of
+    width x height as stored, decoded at 1/``reduction``."""
+    from occflownet.contract import calibration_arrays
 
-        return calibration_arrays(calib, width, height)
-    return calibration_arrays(calib, width, height)
+    return calibration_arrays(json.loads(Path(calib_path).read_text()), width, height, reduction=reduction)
+
+
+def python_frame(model: Path, folder: Path):
+    """The frame of ``folder`` as Python's inference paths decode it for ``model`` (JPEGs at reduced scale)."""
+    from occflownet.contract import check_session, create_session
+    from occflownet.predict import load_frame
+
+    return load_frame(folder, check_session(create_session(model), str(model)).input_size)
 
 
 def python_reference(model: Path, folder: Path, calib_path: Path):
-    """What Python onnxruntime gives on ``folder``: (images, intrinsics, occupancy, density)."""
+    """What Python onnxruntime gives on ``folder`` decoded as ``predict`` decodes it: (images, intrinsics,
+    occupancy, density)."""
     from occflownet.contract import create_session, run_session
-    from occflownet.predict import load_image_folder
 
-    images = load_image_folder(folder)
-    K, T = python_calibration(calib_path, images.shape[2], images.shape[1])
-    occupancy, density = run_session(create_session(model), images, K, T)
-    return images, K, occupancy, density
+    frame = python_frame(model, folder)
+    K, T = frame.calibration_arrays(json.loads(Path(calib_path).read_text()))
+    occupancy, density = run_session(create_session(model), frame.images, K, T)
+    return frame.images, K, occupancy, density
 
 
 def cpp_run(binary: Path, model: Path, folder: Path, calib: Path | None, out: Path, runs: int = 1):
@@ -154,15 +156,14 @@ def test_clean_build_from_scratch_without_warnings(embed_build, tmp_path):
 # ----------------------------------------------------------------------------------------------- equality
 @needs_frame
 def test_decoded_pixels_and_intrinsics_equal_python(embed_build, random_model, tmp_path):
-    """libjpeg-turbo here and OpenCV's decoder in Python give the same RGB bytes for the real frame, and the
-    calibration gives the same float32 intrinsics."""
+    """libjpeg-turbo's DCT scaling here and OpenCV's IMREAD_REDUCED_COLOR_2 in Python give the same RGB bytes for
+    the real frame at half scale (tiny: n = 2), and the calibration gives the same float32 intrinsics (1/2 rule)."""
     _, got = cpp_run(embed_build["run"], random_model, FRAME, FRAME / "calib.json", tmp_path)
-    from occflownet.predict import load_image_folder
-
-    images = load_image_folder(FRAME)
-    assert got["images"].shape == images.shape == (6, 900, 1600, 3)
-    assert np.array_equal(got["images"], images)
-    K, _ = python_calibration(FRAME / "calib.json", 1600, 900)
+    frame = python_frame(random_model, FRAME)
+    assert frame.reduction == 2 and frame.stored_size == (1600, 900)
+    assert got["images"].shape == frame.images.shape == (6, 450, 800, 3)
+    assert np.array_equal(got["images"], frame.images)
+    K, _ = python_calibration(FRAME / "calib.json", 1600, 900, reduction=2)
     assert np.array_equal(got["K"], K)
 
 
@@ -212,7 +213,7 @@ def test_default_calibration_when_no_calib_given(embed_build, random_model, tmp_
     _, got = cpp_run(embed_build["run"], random_model, FRAME, None, tmp_path)
     calib_file = tmp_path / "default.json"
     calib_file.write_text(json.dumps(meta["default_calibration"]))
-    K, _ = python_calibration(calib_file, 1600, 900)
+    K, _ = python_calibration(calib_file, 1600, 900, reduction=2)
     np.testing.assert_allclose(got["K"], K, rtol=2e-7, atol=0)
 
 

@@ -79,6 +79,10 @@ def test_rewritten_pooling_is_bit_identical_to_torch_on_every_run(exported):
     """ScatterElements adds in index order like torch's index_add: the same bits on every run, at 4 threads too."""
     module, depths, proto, _ = exported
     assert {n.op_type for n in proto.graph.node if n.op_type.startswith("Scatter")} == {"ScatterElements"}
+    ranks = {v.name: len(v.type.tensor_type.shape.dim)
+             for v in onnx.shape_inference.infer_shapes(proto).graph.value_info}
+    scatters = [n for n in proto.graph.node if n.op_type == "ScatterElements"]
+    assert [ranks[n.input[0]] for n in scatters] == [1, 1]        # the 1-D form (flattened data and updates)
     inputs = _inputs(depths, seed=3)
     with torch.no_grad():
         trunk_t, fine_t = module(*inputs)

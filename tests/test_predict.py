@@ -136,6 +136,34 @@ def test_load_image_folder_reads_rgb_in_camera_order():
         assert np.array_equal(images[i], cv2.imread(str(FRAME / f"{cam}.jpg"))[:, :, ::-1])
 
 
+@needs_frame
+def test_jpegs_are_decoded_at_the_scale_the_graph_would_keep():
+    """The contract's reduced-scale rule on the real frame: tiny (step 2 at 1600x900) gets the JPEGs at 1/2, base
+    (step 1) whole; a PNG is always whole. The half-scale decode is the 2x2 block average of the whole one: it
+    matches cv2.resize(INTER_AREA) of the whole decode (the pixel-centre rule with s = 1/2, the intrinsics' rule)
+    to a third of a grey level, 5-8x closer than the same average taken one stored pixel to the right."""
+    import cv2
+
+    from occflownet.contract import ImageHeader, decode_reduction
+    from occflownet.predict import load_frame
+
+    frame = load_frame(FRAME, (160, 288))
+    assert frame.reduction == 2 and frame.stored_size == (1600, 900) and frame.images.shape == (6, 450, 800, 3)
+    assert load_frame(FRAME, (256, 704)).reduction == 1 and load_frame(FRAME).images.shape == (6, 900, 1600, 3)
+    assert decode_reduction(ImageHeader("png", 1600, 900, 33), (160, 288)) == 1
+    assert decode_reduction(ImageHeader("jpeg", 3200, 1800, 0), (160, 288)) == 4
+    whole = load_image_folder(FRAME).astype(np.float32)
+    for i in range(6):
+        area = cv2.resize(whole[i], (800, 450), interpolation=cv2.INTER_AREA)
+        shifted = cv2.resize(np.roll(whole[i], -1, axis=1), (800, 450), interpolation=cv2.INTER_AREA)
+        err, err_shifted = (np.abs(frame.images[i] - a)[5:-5, 5:-5].mean() for a in (area, shifted))
+        assert err < 0.5 and err_shifted > 4 * err, (i, err, err_shifted)   # measured 0.31-0.34 vs 1.7-2.7
+    K, _ = frame.calibration_arrays(json.loads((FRAME / "calib.json").read_text()))
+    K_whole, _ = calibration_arrays(json.loads((FRAME / "calib.json").read_text()), 1600, 900)
+    np.testing.assert_allclose(K[:, :2, :2], K_whole[:, :2, :2] / 2, rtol=1e-6)
+    np.testing.assert_allclose(K[:, :2, 2], (K_whole[:, :2, 2] + 0.5) / 2 - 0.5, rtol=1e-6)
+
+
 def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
     """``jpeg`` with an EXIF APP1 segment whose IFD0 holds only the Orientation tag (0x0112)."""
     import struct

@@ -36,10 +36,16 @@ def tiny_model(tmp_path_factory):
 
 
 def _direct_inputs():
-    images = np.stack([cv2.cvtColor(cv2.imread(str(FRAME_DIR / f"{cam}.jpg")), cv2.COLOR_BGR2RGB)
-                       for cam in CAMERAS])
+    """The frame as the contract says a tiny model is fed (JPEGs at half scale by DCT scaling, intrinsics by the
+    pixel-centre rule with s = 1/2), made here with cv2 and numpy alone."""
+    images = np.stack([cv2.cvtColor(cv2.imread(str(FRAME_DIR / f"{cam}.jpg"), cv2.IMREAD_REDUCED_COLOR_2),
+                                    cv2.COLOR_BGR2RGB) for cam in CAMERAS])
+    assert images.shape == (6, 450, 800, 3)
     K, T = calibration_arrays(json.loads((FRAME_DIR / "calib.json").read_text()))
-    return images, K, T
+    K = K.astype(np.float64)
+    K[:, :2, :] *= 0.5
+    K[:, :2, 2] -= 0.25                                   # (c + 0.5) / 2 - 0.5
+    return images, K.astype(np.float32), T
 
 
 def _direct(model: Path, images, K, T) -> tuple[np.ndarray, np.ndarray]:
@@ -107,9 +113,10 @@ def _serve_folder(client, folder: Path, calib: bytes) -> np.ndarray:
 
 @pytest.mark.skipif(not FRAME_DIR.is_dir(), reason=f"shared real frame not found at {FRAME_DIR}")
 def test_predict_and_http_give_identical_grids_for_the_frame_and_its_half_size_copy(tmp_path):
-    """One calibration rule everywhere (issue 14, part 2): the real frame at 1600x900 and resized to 800x450 (PNG,
-    so both paths decode the same pixels; calib.json still says 1600x900), through `occflownet predict --model` and
-    through POST /v1/occupancy, gives identical grids; both fed the pixel-centre-rescaled intrinsics."""
+    """One calibration rule everywhere (issue 14, part 2): the real frame at 1600x900 (JPEGs decoded at half scale)
+    and resized to 800x450 (PNG, decoded whole; calib.json still says 1600x900), through `occflownet predict
+    --model` and through POST /v1/occupancy, gives identical grids; both fed the pixel-centre-rescaled
+    intrinsics."""
     from exported_models import exported_trained_tiny
     from occflownet.cli import main
     from occflownet.contract import calibration_arrays
@@ -147,8 +154,9 @@ def test_predict_and_http_give_identical_grids_for_the_frame_and_its_half_size_c
             np.testing.assert_array_equal(served, predicted)
             grids[name] = served
             (_, got_K, _), = fed
-            w, h = (1600, 900) if name == "full" else (800, 450)
-            np.testing.assert_array_equal(got_K, calibration_arrays(calib, w, h)[0])
+            # the 1600x900 JPEGs are decoded at half scale (tiny), the 800x450 PNGs whole: both fed 800x450
+            assert fed[0][0].shape == (6, 450, 800, 3)
+            np.testing.assert_array_equal(got_K, calibration_arrays(calib, 800, 450)[0])
     K_full, K_half = calibration_arrays(calib, 1600, 900)[0], calibration_arrays(calib, 800, 450)[0]
     np.testing.assert_allclose(K_half[:, :2, :2], K_full[:, :2, :2] / 2, rtol=1e-6)
     np.testing.assert_allclose(K_half[:, :2, 2], (K_full[:, :2, 2] + 0.5) / 2 - 0.5, rtol=1e-6)   # pixel centres

@@ -315,8 +315,9 @@ void Calibration::cam2ego_f32(float* out) const {
         for (int i = 0; i < 16; ++i) out[c * 16 + i] = float(cam2ego[c][i]);
 }
 
-void Calibration::intrinsics_for_size(int width, int height, float* out) const {
+void Calibration::intrinsics_for_size(int width, int height, float* out, int reduction) const {
     if (width < 1 || height < 1) fail(Error::kInvalidArgument, "image size must be positive");
+    if (reduction < 1) fail(Error::kInvalidArgument, "reduction must be positive");
     for (std::size_t c = 0; c < intrinsics.size(); ++c) {
         std::array<double, 9> K = intrinsics[c];
         auto [cw, ch] = image_size[c];
@@ -333,6 +334,12 @@ void Calibration::intrinsics_for_size(int width, int height, float* out) const {
             for (int j = 0; j < 3; ++j) K[j] *= sx, K[3 + j] *= sy;
             K[2] += 0.5 * sx - 0.5;  // pixel centres: c' = (c + 0.5) s - 0.5
             K[5] += 0.5 * sy - 0.5;
+        }
+        if (reduction > 1) {  // decoded at 1/n: the same rule with s = 1/n exactly
+            const double s = 1.0 / reduction;
+            for (int j = 0; j < 6; ++j) K[j] *= s;
+            K[2] += 0.5 * s - 0.5;
+            K[5] += 0.5 * s - 0.5;
         }
         for (int i = 0; i < 9; ++i) out[c * 9 + i] = float(K[i]);
     }

@@ -4,6 +4,7 @@
 
 #include "occflownet/runner.hpp"
 
+#include <algorithm>
 #include <csetjmp>
 #include <cstdio>
 #include <cstring>
@@ -47,7 +48,7 @@ void jpeg_emit(j_common_ptr cinfo, int level) {
 }
 
 // Decodes (dst != nullptr) or only reads the header; returns "" or the error message.
-std::string jpeg_run(const EncodedImage& im, std::uint8_t* dst, int* width, int* height) {
+std::string jpeg_run(const EncodedImage& im, std::uint8_t* dst, int* width, int* height, int reduction = 1) {
     jpeg_decompress_struct cinfo;
     JpegErr err;
     std::memset(&cinfo, 0, sizeof cinfo);
@@ -70,7 +71,14 @@ std::string jpeg_run(const EncodedImage& im, std::uint8_t* dst, int* width, int*
             return "CMYK/YCCK JPEGs are not supported (convert to RGB)";
         }
         cinfo.out_color_space = JCS_RGB;  // grey -> RGB as OpenCV's IMREAD_COLOR (then BGR -> RGB)
+        cinfo.scale_num = 1;              // DCT scaling, as OpenCV's IMREAD_REDUCED_COLOR_n
+        cinfo.scale_denom = unsigned(reduction);
         jpeg_start_decompress(&cinfo);
+        if (int(cinfo.output_width) != (*width + reduction - 1) / reduction ||
+            int(cinfo.output_height) != (*height + reduction - 1) / reduction) {
+            jpeg_destroy_decompress(&cinfo);
+            return "unexpected size at reduced scale";
+        }
         const std::size_t stride = std::size_t(cinfo.output_width) * 3;
         while (cinfo.output_scanline < cinfo.output_height) {
             JSAMPROW row = dst + std::size_t(cinfo.output_scanline) * stride;
@@ -142,13 +150,26 @@ EncodedImage probe_image(const std::string& path) {
     return im;
 }
 
-void decode_into(const EncodedImage& im, std::uint8_t* dst) {
+int decode_reduction(const EncodedImage& im, const std::array<int, 2>& input_size) {
+    if (im.png) return 1;
+    // crop_window of occflownet/contract/images.py: the crop width and the decimation step
+    const long long h_in = input_size[0], w_in = input_size[1], H = im.height, W = im.width;
+    const long long crop_w = std::min(W, (2 * H * w_in + h_in) / (2 * h_in));
+    const long long step = std::max(1LL, crop_w / (2 * w_in));
+    int n = 1;
+    for (int candidate : {2, 4, 8})
+        if (candidate <= step) n = candidate;
+    return n;
+}
+
+void decode_into(const EncodedImage& im, std::uint8_t* dst, int reduction) {
     if (!im.png) {
         int w = 0, h = 0;
-        std::string msg = jpeg_run(im, dst, &w, &h);
+        std::string msg = jpeg_run(im, dst, &w, &h, reduction);
         if (!msg.empty()) fail(Error::kInvalidArgument, im.name + ": corrupt JPEG (" + msg + ")");
         return;
     }
+    if (reduction != 1) fail(Error::kInvalidArgument, im.name + ": PNGs are decoded whole (reduction 1)");
     png_image png;
     std::memset(&png, 0, sizeof png);
     png.version = PNG_IMAGE_VERSION;

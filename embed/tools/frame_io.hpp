@@ -2,6 +2,7 @@
 // into the [6, H, W, 3] input slab, calibration files, and .npy output. Errors are occflownet::Error.
 #pragma once
 
+#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <string>
@@ -27,7 +28,14 @@ EncodedImage probe_image(const std::string& path);   // reads the file; Error if
 // Decodes `image` into dst, uint8 [height, width, 3] RGB (image.height x image.width). JPEG: libjpeg-turbo with its
 // defaults (islow DCT, fancy upsampling), as OpenCV's decoder; any libjpeg warning (corrupt or truncated data) is an
 // Error. PNG: 8-bit grey/RGB/palette, alpha dropped; 16-bit PNGs are refused. EXIF orientation is ignored.
-void decode_into(const EncodedImage& image, std::uint8_t* dst);
+// reduction n > 1 (JPEG only): decoded at 1/n by libjpeg's DCT scaling (scale_num 1, scale_denom n), as OpenCV's
+// IMREAD_REDUCED_COLOR_n: dst is then uint8 [ceil(height / n), ceil(width / n), 3].
+void decode_into(const EncodedImage& image, std::uint8_t* dst, int reduction = 1);
+
+// The scale 1/n a JPEG is decoded at for a model whose network input is input_size [H, W]: the contract's rule
+// (occflownet/contract/images.py, decode_reduction): the largest of 1, 2, 4, 8 not above the graph's decimation
+// step for the stored size (crop_window); always 1 for a PNG.
+int decode_reduction(const EncodedImage& image, const std::array<int, 2>& input_size);
 
 // Writes a NumPy .npy (format 1.0, C order) of `dtype` ("|u1" or "<f4") and `shape`.
 void write_npy(const std::string& path, const std::string& dtype, const std::vector<std::size_t>& shape,

@@ -6,7 +6,8 @@
 //
 // DIR holds <CAMERA>.jpg (or .jpeg/.png) per camera of the model. Without --calib the model's default calibration
 // is used. Calibration intrinsics for another image size with the same aspect ratio are rescaled (pixel-centre rule,
-// see Calibration::intrinsics_for_size). After one warm-up run, N timed runs each decode the six images (from
+// see Calibration::intrinsics_for_size). JPEGs are decoded at reduced scale (libjpeg's DCT scaling, 1/n with n the
+// contract's rule for the model's input size; the intrinsics follow with s = 1/n). After one warm-up run, N timed runs each decode the six images (from
 // memory) into the input buffer and run the model; p50 latencies with and without decoding are printed, then the
 // per-class voxel counts of the grid. Exit status 0 on success, 1 on any error (message on stderr), 2 on bad usage.
 #include "frame_io.hpp"
@@ -100,9 +101,9 @@ int run(const Args& a) {
     std::vector<occflownet::io::EncodedImage> images;
     for (const std::string& path : occflownet::io::find_camera_images(a.images, info.cameras))
         images.push_back(occflownet::io::probe_image(path));
-    const int W = images[0].width, H = images[0].height;
+    const int W0 = images[0].width, H0 = images[0].height;
     for (const auto& im : images)
-        if (im.width != W || im.height != H) {
+        if (im.width != W0 || im.height != H0) {
             std::string detail;
             for (std::size_t c = 0; c < images.size(); ++c)
                 detail += (c ? ", " : "") + info.cameras[c] + ": " + std::to_string(images[c].width) + "x" +
@@ -111,12 +112,20 @@ int run(const Args& a) {
                                                      "); all six must match");
         }
 
-    // Calibration for W x H.
+    // JPEGs are decoded at 1/n (the contract's reduced-scale rule, frame_io.hpp decode_reduction): the graph would
+    // keep only every n-th pixel of them. n is the same for the six (same size, same format checked below).
+    const int n = occflownet::io::decode_reduction(images[0], info.input_size);
+    for (const auto& im : images)
+        if (occflownet::io::decode_reduction(im, info.input_size) != n)
+            throw Error(Error::kInvalidArgument, a.images + ": camera images mix JPEG and PNG; all six must match");
+    const int W = (W0 + n - 1) / n, H = (H0 + n - 1) / n;
+
+    // Calibration for W0 x H0 as stored, scaled to the decoded W x H.
     occflownet::Calibration calib =
         a.calib.empty() ? info.default_calibration
                         : occflownet::parse_calibration(occflownet::io::read_text(a.calib), info.cameras, a.calib);
     std::vector<float> K(occflownet::kCameras * 9), T(occflownet::kCameras * 16);
-    calib.intrinsics_for_size(W, H, K.data());
+    calib.intrinsics_for_size(W0, H0, K.data(), n);
     calib.cam2ego_f32(T.data());
 
     // Caller-owned buffers, allocated once.
@@ -124,7 +133,7 @@ int run(const Args& a) {
     std::vector<std::uint8_t> pixels(frame * occflownet::kCameras), occupancy(info.grid.voxels());
     std::vector<float> density(info.grid.voxels());
     auto decode_all = [&] {
-        for (std::size_t c = 0; c < images.size(); ++c) occflownet::io::decode_into(images[c], pixels.data() + c * frame);
+        for (std::size_t c = 0; c < images.size(); ++c) occflownet::io::decode_into(images[c], pixels.data() + c * frame, n);
     };
 
     std::vector<double> total, infer;
@@ -154,7 +163,7 @@ int run(const Args& a) {
                 a.model.c_str(), info.preset.empty() ? "?" : info.preset.c_str(),
                 info.version.empty() ? "?" : info.version.c_str(), info.contract.c_str(),
                 occflownet::Runner::onnxruntime_version().c_str(), a.provider.c_str(), a.threads);
-    std::printf("images: %s, 6 x %dx%d; calibration: %s\n", a.images.c_str(), W, H,
+    std::printf("images: %s, 6 x %dx%d decoded at 1/%d from %dx%d; calibration: %s\n", a.images.c_str(), W, H, n, W0, H0,
                 a.calib.empty() ? "model default" : a.calib.c_str());
     std::printf("load: %.1f ms, first run: %.1f ms\n", load_ms, first_ms);
     std::printf("p50 inference: %.2f ms, p50 decode+inference: %.2f ms (%d runs)\n", median(infer), median(total),

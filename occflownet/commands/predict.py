@@ -32,16 +32,20 @@ def run(args) -> int:
         print(f"occflownet predict: {problem}", file=sys.stderr)
         return 2
     try:
-        images = predict.load_image_folder(args.images)
-        calib = contract.load_calibration(args.calib)
-        K, T = contract.calibration_arrays(calib, images.shape[2], images.shape[1])
-        t0 = time.perf_counter()
         if args.model:
             session = contract.create_session(args.model, args.threads)
-            occupancy, density = contract.run_session(session, images, K, T)
+            input_size = contract.check_session(session, args.model).input_size
         else:
             model = predict.model_from_source(args.checkpoint, args.preset, args.seed)
-            occupancy, density = predict.predict_torch(model, images, K, T)
+            input_size = model.cfg.input_size
+        frame = predict.load_frame(args.images, input_size)      # JPEGs at reduced scale (docs/contracts.md)
+        calib = contract.load_calibration(args.calib)
+        K, T = frame.calibration_arrays(calib)
+        t0 = time.perf_counter()
+        if args.model:
+            occupancy, density = contract.run_session(session, frame.images, K, T)
+        else:
+            occupancy, density = predict.predict_torch(model, frame.images, K, T)
         seconds = time.perf_counter() - t0
         predict.save_grid(args.out, occupancy, density)
         if args.png:

@@ -7,7 +7,8 @@ calibration checks, intrinsics rescaling and onnxruntime sessions from here. Imp
 
 Modules: :mod:`~occflownet.contract.tensors` (the tensors, signature check, feeds),
 :mod:`~occflownet.contract.metadata` (metadata keys and parsing), :mod:`~occflownet.contract.calibration`
-(calibration JSON and the rescaling rule), :mod:`~occflownet.contract.images` (the image decoding rule),
+(calibration JSON and the rescaling rule), :mod:`~occflownet.contract.images` (image decoding, the graph's crop
+window, reduced-scale JPEG decoding),
 :mod:`~occflownet.contract.session` (the onnxruntime session). Their
 public names are re-exported here: ``from occflownet import contract; contract.create_session(...)``.
 
@@ -47,7 +48,8 @@ from occflownet.contract.calibration import (ASPECT_TOLERANCE, ORTHONORMAL_TOLER
                                              calibration_json,
                                              load_calibration, parse_calibration_json, rescale_intrinsics,
                                              resize_matrix, scale_intrinsics, validate_calibration)
-from occflownet.contract.images import decode_rgb
+from occflownet.contract.images import (JPEG_REDUCTIONS, ImageHeader, crop_window, decode_reduction, decode_rgb,
+                                        image_header, reduced_size)
 from occflownet.contract.metadata import (METADATA_KEYS, REQUIRED_METADATA_KEYS, ModelMetadata, decode_metadata,
                                           encode_metadata, parse_metadata)
 from occflownet.contract.session import check_session, create_session, run_session
@@ -58,7 +60,8 @@ __all__ = [
     "ASPECT_TOLERANCE", "ORTHONORMAL_TOLERANCE", "SINGULAR_TOLERANCE", "Calibration", "CalibrationError",
     "MissingCalibrationField", "calibration_arrays", "calibration_json", "load_calibration", "parse_calibration_json",
     "rescale_intrinsics", "resize_matrix", "scale_intrinsics", "validate_calibration",
-    "decode_rgb", "METADATA_KEYS", "REQUIRED_METADATA_KEYS", "ModelMetadata", "decode_metadata", "encode_metadata",
+    "JPEG_REDUCTIONS", "ImageHeader", "crop_window", "decode_reduction", "decode_rgb", "image_header",
+    "reduced_size", "METADATA_KEYS", "REQUIRED_METADATA_KEYS", "ModelMetadata", "decode_metadata", "encode_metadata",
     "parse_metadata", "check_session", "create_session", "run_session",
     "CONTRACT_VERSION", "INPUT_NAMES", "INPUTS", "NUM_CAMERAS", "OUTPUT_NAMES", "OUTPUTS", "ContractError",
     "TensorSpec", "check_signature", "make_feeds", "session_signature",

@@ -41,15 +41,22 @@ class Calibration:
     image_sizes: tuple[tuple[int, int] | None, ...]
 
     def arrays_for(self, sizes: Sequence[tuple[int, int]], source: str = "the calibration",
-                   remedy: str = "a calibration") -> tuple[np.ndarray, np.ndarray]:
+                   remedy: str = "a calibration", reductions: Sequence[int] | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
         """(intrinsics float32 [V, 3, 3] for each camera's actual image size (w, h) in ``sizes``, cam2ego float32
         [V, 4, 4]): intrinsics rescaled by the pixel-centre rule where a camera's calibrated size differs.
         CalibrationError naming the camera when the aspect ratio differs (``source`` names the calibration,
-        ``remedy`` what the user should send instead)."""
+        ``remedy`` what the user should send instead).
+
+        ``reductions`` (one n per camera): the images of ``sizes`` (as stored) were decoded at 1/n
+        (:func:`occflownet.contract.images.decode_reduction`); the intrinsics are then scaled by s = 1/n exactly
+        (``f' = f/n``, ``c' = (c + 0.5)/n − 0.5``), in float64 before the one cast to float32."""
         if len(sizes) != len(self.cameras):
             raise ValueError(f"need {len(self.cameras)} image sizes, got {len(sizes)}")
         K = [rescale_intrinsics(k, size, (int(w), int(h)), camera=name, source=source, remedy=remedy)
              for name, k, size, (w, h) in zip(self.cameras, self.intrinsics, self.image_sizes, sizes)]
+        if reductions is not None:
+            K = [k if n == 1 else scale_intrinsics(k, 1.0 / n, 1.0 / n) for k, n in zip(K, reductions)]
         return np.stack(K).astype(np.float32), self.cam2ego.astype(np.float32)
 
 
@@ -185,13 +192,15 @@ def calibration_json(intrinsics, cam2ego, image_size: Sequence[int] | None = Non
 
 
 def calibration_arrays(calib: Mapping, width: int | None = None, height: int | None = None,
-                       cameras: Sequence[str] = CAMERAS, source: str = "the calibration"
+                       cameras: Sequence[str] = CAMERAS, source: str = "the calibration", reduction: int = 1
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Calibration JSON → (intrinsics float32 [V, 3, 3], cam2ego float32 [V, 4, 4]) in ``cameras`` order, for
     images of ``width × height`` (rescaled by the pixel-centre rule where the calibration states another size of the
-    same aspect ratio), or as stated when no size is given. Raises CalibrationError (see validate_calibration,
+    same aspect ratio), or as stated when no size is given; with ``reduction`` n the images of that size were
+    decoded at 1/n (see :meth:`Calibration.arrays_for`). Raises CalibrationError (see validate_calibration,
     rescale_intrinsics)."""
     cal = validate_calibration(calib, cameras)
     if width is None or height is None:
         return cal.intrinsics.astype(np.float32), cal.cam2ego.astype(np.float32)
-    return cal.arrays_for([(int(width), int(height))] * len(cameras), source)
+    return cal.arrays_for([(int(width), int(height))] * len(cameras), source,
+                          reductions=[reduction] * len(cameras))

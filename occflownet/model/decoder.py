@@ -13,6 +13,7 @@ on every full-resolution voxel. With s = 1 the heads run on the trunk output.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from occflownet.occ3d import FREE, NUM_CLASSES
@@ -20,6 +21,11 @@ from occflownet.occ3d import FREE, NUM_CLASSES
 # Initial bias of Φσ's output: σ starts near sigmoid(-2.2) ≈ 0.1 (most of space is free), so freshly initialised
 # models render rays that travel into the scene instead of stopping in the first voxels.
 SIGMA_PRIOR_LOGIT = -2.2
+# In eval mode a trunk at most this many voxels high runs as 2-D convolutions with z folded into the channels
+# (:func:`fold_conv`): the same map, computed by the runtimes' fast 2-D kernels. onnxruntime 1.32 on this CPU runs
+# tiny's 3x3x3 Conv on [1, 32, 50, 50, 4] 2.6x slower than the folded Conv2d on [1, 128, 50, 50] (4/3 of the
+# FLOPs); at base's height 8 (8/3 of the FLOPs) the two cost the same, so base keeps Conv3d (docs/model.md).
+FOLD_Z_MAX = 4
 
 
 class ResBlock3d(nn.Module):
@@ -36,6 +42,21 @@ class ResBlock3d(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         out = self.relu(self.bn1(self.conv1(x)))
         return self.relu(self.bn2(self.conv2(out)) + x)
+
+
+def fold_conv(conv: nn.Conv3d, bn: nn.BatchNorm3d, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A bias-free Conv3d (kernel k³, padding k // 2) followed by an eval-mode BatchNorm3d, on [B, C, X, Y, Z] with
+    Z = ``height``, as one Conv2d on [B, Z·C, X, Y] (channel z·C + c = channel c at height z): → (weight
+    [Z·O, Z·C, k, k], bias [Z·O]). Output height z reads input heights z + dz − k // 2 (zero padding: the
+    blocks outside the grid are zero); the BatchNorm is folded in (scale into the weight, shift into the bias)."""
+    scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)                         # [O]
+    w = conv.weight * scale[:, None, None, None, None]                               # [O, C, k, k, k]
+    bias = bn.bias - bn.running_mean * scale
+    r = w.shape[-1] // 2
+    zero = torch.zeros_like(w[..., 0])
+    rows = [torch.cat([w[..., zi - zo + r] if abs(zi - zo) <= r else zero for zi in range(height)], dim=1)
+            for zo in range(height)]
+    return torch.cat(rows, dim=0), bias.repeat(height)
 
 
 def mlp(in_channels: int, hidden: tuple[int, ...], out_channels: int) -> nn.Sequential:
@@ -85,10 +106,25 @@ class VoxelDecoder(nn.Module):
         else:  # "prior": torch's default init, Φσ's output bias SIGMA_PRIOR_LOGIT
             nn.init.constant_(self.sigma_head[-1].bias, SIGMA_PRIOR_LOGIT)
 
+    def trunk_rows(self, trunk: torch.Tensor) -> torch.Tensor:
+        """Trunk grid [B, Xc, Yc, Zc, C] → stem and residual blocks → [M, Ct] (M = B·Xc·Yc·Zc, rows in
+        (b, xc, yc, zc) order). Training (and any grid higher than FOLD_Z_MAX) runs the Conv3d modules; eval mode runs the same
+        map as 2-D convolutions with z folded into the channels (:func:`fold_conv`, BatchNorm folded in)."""
+        b, xc, yc, zc, _ = trunk.shape
+        if self.training or zc > FOLD_Z_MAX:
+            x = self.blocks(self.stem(trunk.permute(0, 4, 1, 2, 3)))              # [B, Ct, Xc, Yc, Zc]
+            return x.permute(0, 2, 3, 4, 1).reshape(-1, x.shape[1])
+        x = trunk.permute(0, 3, 4, 1, 2).reshape(b, -1, xc, yc)                    # [B, Zc·C, Xc, Yc]
+        x = torch.relu(F.conv2d(x, *fold_conv(self.stem[0], self.stem[1], zc)))
+        for block in self.blocks:
+            out = torch.relu(F.conv2d(x, *fold_conv(block.conv1, block.bn1, zc), padding=1))
+            x = torch.relu(F.conv2d(out, *fold_conv(block.conv2, block.bn2, zc), padding=1) + x)
+        ct = x.shape[1] // zc
+        return x.reshape(b, zc, ct, xc, yc).permute(0, 3, 4, 1, 2).reshape(-1, ct)  # [M, Ct]
+
     def voxel_features(self, trunk: torch.Tensor, fine_points: tuple[torch.Tensor, torch.Tensor] | None):
         """Head input features [B·Xc·Yc·Zc·s³, head_channels], rows in block layout order."""
-        x = self.blocks(self.stem(trunk.permute(0, 4, 1, 2, 3)))                  # [B, Ct, Xc, Yc, Zc]
-        x = x.permute(0, 2, 3, 4, 1).reshape(-1, x.shape[1])                       # [M, Ct], M = B·Xc·Yc·Zc
+        x = self.trunk_rows(trunk)                                                 # [M, Ct], M = B·Xc·Yc·Zc
         # the per-voxel layers run on 2-D [rows, channels] tensors: onnxruntime then fuses bias and ReLU (Gemm)
         if self.up is not None:
             x = self.up(x).reshape(-1, self.head_channels)                         # [M·s³, Ch]
@@ -109,13 +145,13 @@ class VoxelDecoder(nn.Module):
         """Inference: (occupancy uint8, density) [B, Xc, Yc, Zc, s³], Φs evaluated only where σ ≥ threshold.
 
         Equals fusing :meth:`forward`'s outputs (argmax where σ ≥ τ else free) but skips the semantic MLP on free
-        voxels (the gather/scatter export as NonZero/GatherND/ScatterND; occupied voxels are unique, no reduction).
+        voxels (the gather/scatter export as NonZero/Gather/ScatterND; occupied voxels are unique, no reduction).
         """
         b, xc, yc, zc, _ = trunk.shape
         x = self.voxel_features(trunk, fine_points)
         density = torch.sigmoid(self.sigma_head(x)).reshape(-1)                    # [B·Xc·Yc·Zc·s³]
         occupied = torch.nonzero(density >= threshold).reshape(-1)
-        labels = torch.argmax(self.semantic_head(x[occupied]), dim=-1).to(torch.uint8)
+        labels = torch.argmax(self.semantic_head(torch.index_select(x, 0, occupied)), dim=-1).to(torch.uint8)
         occupancy = torch.full(density.shape, FREE, dtype=torch.uint8, device=x.device)
         occupancy = occupancy.index_put((occupied,), labels)
         shape = (b, xc, yc, zc, self.stride ** 3)

@@ -101,7 +101,8 @@ class LiftSplat(nn.Module):
             feature_intrinsics [B, V, 3, 3], cam2ego [B, V, 4, 4])
     → (trunk grid [B, X/s, Y/s, Z/s, C] (ego frame, summed features),
        fine points (rows int64 [N], features [N, F]) or None: the full-resolution lifted features, not yet pooled
-       (row = block-layout voxel, see :func:`voxel_rows`); the decoder scatter-adds them into its upsampled grid).
+       (row = block-layout voxel, see :func:`voxel_rows`); the decoder scatter-adds them into its upsampled grid;
+       in eval mode only the N ≤ B·V·D·h·w points inside the grid, in training all of them, weighted 0 outside).
     """
 
     def __init__(self, depth_centers: list[float], stride: int):
@@ -113,10 +114,31 @@ class LiftSplat(nn.Module):
         b, _, _, h, w = depth_prob.shape
         points = frustum_points(feature_intrinsics, cam2ego, self.depths, h, w)
         coarse_rows, fine_rows, valid = voxel_rows(points, self.stride)
-        weight = (depth_prob * valid)[..., None]                                   # [B, V, D, h, w, 1]
         cx, cy, cz = (n // self.stride for n in GRID.shape)
-        lifted = (weight * context[:, :, None]).reshape(-1, context.shape[-1])     # [N, C]
-        trunk = scatter_pool(lifted, coarse_rows.reshape(-1), b * cx * cy * cz).reshape(b, cx, cy, cz, -1)
+        if self.training:
+            weight = (depth_prob * valid)[..., None]                               # [B, V, D, h, w, 1]
+            lifted = (weight * context[:, :, None]).reshape(-1, context.shape[-1])  # [N, C]
+            trunk = scatter_pool(lifted, coarse_rows.reshape(-1), b * cx * cy * cz).reshape(b, cx, cy, cz, -1)
+            if fine is None:
+                return trunk, None
+            return trunk, (fine_rows.reshape(-1), (weight * fine[:, :, None]).reshape(-1, fine.shape[-1]))
+        return self._pool_valid(depth_prob, context, fine, coarse_rows, fine_rows, valid)
+
+    def _pool_valid(self, depth_prob, context, fine, coarse_rows, fine_rows, valid):
+        """Eval mode (the exported path): the same sums with the points outside the grid left out before the
+        outer product (about half of them on the real frame: tiny 53 %, base 46 %), so the scatter-add and the
+        products see only the points that count. The kept points stay in their order (NonZero is ascending) and a
+        dropped point only ever added 0 · feature = 0 to row 0, so the pooled sums are bit-identical to the
+        training path's."""
+        b, v, d, h, w = depth_prob.shape
+        cx, cy, cz = (n // self.stride for n in GRID.shape)
+        keep = torch.nonzero(valid.reshape(-1)).reshape(-1)                        # [K] point indices
+        pixel = torch.div(keep, d * h * w, rounding_mode="floor") * (h * w) + torch.remainder(keep, h * w)
+        pick = torch.index_select                                                  # ONNX Gather
+        weight = pick(depth_prob.reshape(-1), 0, keep)[:, None]                    # [K, 1]
+        lifted = weight * pick(context.reshape(-1, context.shape[-1]), 0, pixel)   # [K, C]
+        trunk = scatter_pool(lifted, pick(coarse_rows.reshape(-1), 0, keep), b * cx * cy * cz)
+        trunk = trunk.reshape(b, cx, cy, cz, -1)
         if fine is None:
             return trunk, None
-        return trunk, (fine_rows.reshape(-1), (weight * fine[:, :, None]).reshape(-1, fine.shape[-1]))
+        return trunk, (pick(fine_rows.reshape(-1), 0, keep), weight * pick(fine.reshape(-1, fine.shape[-1]), 0, pixel))

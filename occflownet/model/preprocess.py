@@ -29,17 +29,14 @@ from __future__ import annotations
 
 import torch
 
+from occflownet.contract.images import crop_window as contract_crop_window
+
 
 def crop_window(height, width, input_size: tuple[int, int], subsample: bool = True):
     """(y_start, x_start, x_end, step): the crop keeps rows ``y_start::step`` (to the bottom of the image) and
-    columns ``x_start:x_end:step``. Works on Python ints and on symbolic shape ints (export)."""
-    h_in, w_in = input_size
-    crop_h = torch.sym_min(height, (2 * width * h_in + w_in) // (2 * w_in))   # round(W * h_in / w_in)
-    crop_w = torch.sym_min(width, (2 * height * w_in + h_in) // (2 * h_in))   # round(H * w_in / h_in)
-    step = torch.sym_max(1, crop_w // (2 * w_in)) if subsample else 1
-    centre = (step - 1) // 2                                                   # keep the middle of each block
-    x0 = (width - crop_w) // 2
-    return height - crop_h + centre, x0 + centre, x0 + crop_w, step
+    columns ``x_start:x_end:step``. The contract's rule (:func:`occflownet.contract.crop_window`, which the
+    reduced-scale JPEG decoding of the inference paths also follows) on Python ints or symbolic shape ints."""
+    return contract_crop_window(height, width, input_size, subsample, torch.sym_min, torch.sym_max)
 
 
 def adjust_intrinsics(intrinsics: torch.Tensor, y_start, x_start, step, rows, cols,
@@ -100,13 +97,19 @@ def triangle_weights(length_in, length_out: int, device=None) -> tuple[torch.Ten
     return rows, w
 
 
-def resample_rows(x: torch.Tensor, length_out: int) -> torch.Tensor:
-    """Triangle-filter resampling of ``x`` [N, L_in, M] along axis 1 → [N, length_out, M]: one ``Gather`` of the
-    blocks' windows and one batched ``MatMul`` with the banded weights (see :func:`triangle_weights`)."""
-    n, length_in, m = x.shape
+def resample_rows(x: torch.Tensor, length_out: int, start=0, step=1, length_in=None) -> torch.Tensor:
+    """Triangle-filter resampling along axis 1 of the rows ``start + step·j`` (j < ``length_in``, default: all rows)
+    of ``x`` [N, L, M] (any dtype: only the gathered rows are cast) → float32 [N, length_out, M]: one ``Gather`` of
+    the blocks' windows (whole contiguous rows) and one batched ``MatMul`` with the banded weights (see
+    :func:`triangle_weights`). ``start``/``step`` fold a crop and a decimation into the gather, so nothing is
+    sliced or copied first."""
+    n, _, m = x.shape
+    if length_in is None:
+        length_in = x.shape[1]
     rows, w = triangle_weights(length_in, length_out, x.device)
     blocks = w.shape[0]
-    windows = torch.index_select(x, 1, rows.reshape(-1)).reshape(n, blocks, -1, m)      # [N, nb, win, M]
+    source = rows.reshape(-1) * step + start                                             # rows of x
+    windows = torch.index_select(x, 1, source).to(torch.float32).reshape(n, blocks, -1, m)   # [N, nb, win, M]
     out = torch.matmul(w, windows)                                                       # [N, nb, BLOCK, M]
     return out.reshape(n, blocks * BLOCK, m)[:, :length_out]
 
@@ -114,7 +117,8 @@ def resample_rows(x: torch.Tensor, length_out: int) -> torch.Tensor:
 def antialiased_resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     """float images channels-first [N, C, H, W] → [N, C, size[0], size[1]] by the separable triangle filter: rows
     first, then the columns of the transposed (2-D, per channel) result, transposed back; every gather moves whole
-    contiguous rows.
+    contiguous rows. (The reference form of the filter; :func:`crop_resize_hwc` is the same filter on the uint8
+    images as they come.)
 
     Equals ``F.interpolate(x, size, mode="bilinear", align_corners=False, antialias=True)`` up to float32
     rounding (≤ 2e-3 on 0..255 images, like torch's own distance from a float64 filter; tested)."""
@@ -125,18 +129,37 @@ def antialiased_resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     return x.transpose(1, 2).reshape(n, c, out_h, out_w)
 
 
+def crop_resize_hwc(images: torch.Tensor, y_start, x_start, step, rows, cols,
+                    size: tuple[int, int]) -> torch.Tensor:
+    """uint8 images channels-last [N, H, W, 3] → float32 channels-first [N, 3, size[0], size[1]]: the crop window
+    (rows ``y_start + step·i``, i < ``rows``; columns ``x_start + step·j``, j < ``cols``) resized by the separable
+    triangle filter, what ``antialiased_resize`` computes on the cropped, decimated, cast and permuted images.
+
+    Data movement kept small: the row pass gathers whole image rows of the uint8 input (the crop and the
+    decimation are its gather indices; only the gathered rows are cast to float) and filters all W·3 values of
+    each row; the small result [N, H_out, W, 3] is turned once to [N, W, 3·H_out] (one axis moved: a single-axis
+    Transpose), the column pass gathers its rows the same way, and the result [N, W_out, 3, H_out] is turned once
+    more into [N, 3, H_out, W_out]."""
+    n, height, width, _ = images.shape
+    out_h, out_w = size
+    x = resample_rows(images.reshape(n, height, width * 3), out_h, y_start, step, rows)   # [N, H_out, W·3]
+    x = x.reshape(n, out_h, width, 3).permute(0, 2, 3, 1).reshape(n, width, 3 * out_h)   # [N, W, 3·H_out]
+    x = resample_rows(x, out_w, x_start, step, cols)                                      # [N, W_out, 3·H_out]
+    return x.reshape(n, out_w, 3, out_h).permute(0, 2, 3, 1)                             # [N, 3, H_out, W_out]
+
+
 def preprocess_images(images: torch.Tensor, intrinsics: torch.Tensor, input_size: tuple[int, int],
                       mean, std, subsample: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """uint8 images [B, V, H, W, 3] (RGB) + intrinsics [B, V, 3, 3] for H×W →
     (normalised float32 images [B*V, 3, H_in, W_in], intrinsics [B, V, 3, 3] of the network input)."""
     b, v, height, width, _ = images.shape
     y_start, x_start, x_end, step = crop_window(height, width, input_size, subsample)
-    crop = images[:, :, y_start::step, x_start:x_end:step]         # [B, V, rows, cols, 3] uint8
-    rows, cols = crop.shape[2], crop.shape[3]
-    torch._check(rows > 0)  # tells torch.export the strided crop is non-empty (it always is)
+    rows = (height - y_start + step - 1) // step                   # kept rows y_start::step (to the bottom)
+    cols = (x_end - x_start + step - 1) // step                    # kept columns x_start:x_end:step
+    torch._check(rows > 0)  # tells torch.export the crop is non-empty (it always is)
     torch._check(cols > 0)
-    x = crop.reshape(b * v, rows, cols, 3).permute(0, 3, 1, 2).to(torch.float32)   # [B*V, 3, rows, cols]
-    x = antialiased_resize(x, tuple(input_size))
+    x = crop_resize_hwc(images.reshape(b * v, height, width, 3), y_start, x_start, step, rows, cols,
+                        tuple(input_size))                         # [B*V, 3, H_in, W_in] float32
     mean_t = torch.tensor(mean, dtype=torch.float32, device=images.device).reshape(1, 3, 1, 1)
     inv_std = 1.0 / torch.tensor(std, dtype=torch.float32, device=images.device).reshape(1, 3, 1, 1)
     k = adjust_intrinsics(intrinsics, y_start, x_start, step, rows, cols, input_size)

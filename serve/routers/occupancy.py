@@ -19,7 +19,8 @@ from starlette.responses import Response
 from occflownet.contract import CalibrationError, ModelMetadata
 from occflownet.occ3d import CAMERAS
 from occflownet.serve.calibration import request_calibration
-from occflownet.serve.decode import ImageError, check_header, common_size, decode_image, intrinsics_for_size
+from occflownet.serve.decode import (ImageError, check_header, common_size, decode_image, decode_reduction,
+                                    decoded_size, intrinsics_for_size)
 from occflownet.serve.dependencies import GateDep, MediaTypeDep, MetricsDep, ReadyRuntimeDep, SettingsDep
 from occflownet.serve.encode import encode
 from occflownet.serve.errors import ApiError
@@ -92,19 +93,20 @@ async def occupancy(request: Request, media_type: MediaTypeDep, runtime: ReadyRu
     try:
         md = runtime.metadata
         parts = await read_parts(request, occupancy_parts(md.cameras, settings.max_body_bytes))
-        sizes, K, T = _checked_inputs(parts, md, settings.max_image_pixels)
-        body, headers = await _compute(gate, runtime, metrics, parts, sizes, K, T, settings.max_image_pixels,
-                                      media_type)
+        sizes, reductions, K, T = _checked_inputs(parts, md, settings.max_image_pixels)
+        body, headers = await _compute(gate, runtime, metrics, parts, (sizes, reductions), K, T,
+                                       settings.max_image_pixels, media_type)
         return Response(body, media_type=media_type, headers=headers)
     finally:
         gate.leave()
 
 
 def _checked_inputs(parts: dict[str, Part], md: ModelMetadata, max_pixels: int
-                   ) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray]:
+                   ) -> tuple[list[tuple[int, int]], list[int], np.ndarray, np.ndarray]:
     """Everything checkable before a slot is awaited, nothing decoded: all parts present, each image's header
-    (JPEG/PNG, complete, ≤ ``max_pixels``), the calibration → (image sizes (w, h) in camera order, intrinsics
-    float32 [6, 3, 3] for those sizes, cam2ego float32 [6, 4, 4] camera → ego). Raises ApiError (422, 413, 400)."""
+    (JPEG/PNG, complete, ≤ ``max_pixels``), the calibration → (decoded image sizes (w, h) in camera order, the
+    scale 1/n each is decoded at (JPEGs at reduced scale, docs/contracts.md), intrinsics float32 [6, 3, 3] for
+    the decoded sizes, cam2ego float32 [6, 4, 4] camera → ego). Raises ApiError (422, 413, 400)."""
     missing = [cam for cam in md.cameras if cam not in parts]
     if missing:
         raise ApiError(422, "missing_part", f"missing image part(s) {', '.join(missing)}; the request needs one "
@@ -112,30 +114,34 @@ def _checked_inputs(parts: dict[str, Part], md: ModelMetadata, max_pixels: int
     try:
         headers = [check_header(cam, parts[cam].data, max_pixels) for cam in md.cameras]
         sizes = [(h.width, h.height) for h in headers]
+        reductions = [decode_reduction(h, md.input_size) for h in headers]
         calib = parts["calibration"].data if "calibration" in parts else None
-        K, T = request_calibration(calib, md, sizes)
+        K, T = request_calibration(calib, md, sizes, reductions)
     except ImageError as exc:
         raise ApiError(exc.status, "bad_image" if exc.status == 400 else "image_too_large", str(exc)) from None
     except CalibrationError as exc:
         raise ApiError(400, "bad_calibration", str(exc)) from None
-    return sizes, K, T
+    return [decoded_size(h, n) for h, n in zip(headers, reductions)], reductions, K, T
 
 
 async def _compute(gate: InferenceGate, runtime: ModelRuntime, metrics: Metrics, parts: dict[str, Part],
-                  sizes: list[tuple[int, int]], K: np.ndarray, T: np.ndarray, max_pixels: int,
+                  decoded: tuple[list[tuple[int, int]], list[int]], K: np.ndarray, T: np.ndarray, max_pixels: int,
                   media_type: str) -> tuple[bytes, dict[str, str]]:
     """In one CPU slot: decode the images (in threads) into uint8 [6, H, W, 3] RGB at the common size (or the
-    graph's fixed size), intrinsics K float32 [6, 3, 3] (for ``sizes``) rescaled to it, inference with cam2ego
+    graph's fixed size), intrinsics K float32 [6, 3, 3] (for the decoded sizes of ``decoded`` = (sizes,
+    reductions), see :func:`_checked_inputs`) rescaled to it, inference with cam2ego
     T float32 [6, 4, 4] → occupancy uint8 [200, 200, 16], encoded as ``media_type`` → (body, headers with
     Server-Timing). ``parts`` is emptied once decoded (the uploads are not kept during inference)."""
     cameras = runtime.metadata.cameras
     t_queue = time.perf_counter()
     async with gate.slot() as slot:
         t_decode = time.perf_counter()
+        sizes, reductions = decoded
         w, h = runtime.fixed_image_size or common_size(sizes)
         images = np.empty((len(cameras), h, w, 3), np.uint8)
         try:
-            await asyncio.gather(*(run_in_threadpool(decode_image, cam, parts[cam].data, max_pixels, images[i])
+            await asyncio.gather(*(run_in_threadpool(decode_image, cam, parts[cam].data, max_pixels, images[i],
+                                                     reductions[i])
                                    for i, cam in enumerate(cameras)))
         except ImageError as exc:
             raise ApiError(exc.status, "bad_image", str(exc)) from None

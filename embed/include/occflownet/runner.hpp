@@ -63,7 +63,10 @@ struct Calibration {
     // differs and the aspect ratio agrees within kAspectTolerance: s = w/W (x), h/H (y), f' = f s and
     // c' = (c + 0.5) s - 0.5 (pixel centres); skew scales with x. A different aspect ratio -> Error(kInvalidArgument)
     // naming the camera (the images were cropped or padded in a way the calibration does not describe).
-    void intrinsics_for_size(int width, int height, float* out) const;
+    // reduction n > 1: the width x height images were decoded at 1/n (a JPEG at reduced scale, the contract's rule):
+    // the intrinsics are then scaled by s = 1/n exactly, f' = f / n, c' = (c + 0.5) / n - 0.5, in double before
+    // the one cast to float (as occflownet.contract's Calibration.arrays_for).
+    void intrinsics_for_size(int width, int height, float* out, int reduction = 1) const;
 };
 
 // Calibration JSON -> Calibration for `cameras` (in that order). The JSON is
