@@ -24,6 +24,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="rendered-depth MSE and LiDAR depth BCE (off: semantics only)")
     p.add_argument("--density-scale", type=float, default=1.0,
                    help="rendering optical depth per metre = scale * sigma (1.0 = the official, unscaled sigma)")
+    p.add_argument("--sigma-is", default="density", choices=["density", "opacity"],
+                   help="rendering reads σ as a density per metre (official) or an opacity per voxel")
+    p.add_argument("--render-depth-weight", type=float, default=0.05, help="weight of the rendered-depth MSE")
+    p.add_argument("--render-semantics", default="mixture", choices=["mixture", "normalized"],
+                   help="CE on the rendered logit mixture (official) or on it divided by the ray's weight sum")
+    p.add_argument("--free-prior-weight", type=float, default=0.0,
+                   help="weight of the mean -log(1 - σ) over all voxels (0: off, official)")
     p.add_argument("--voxel-mask", action=argparse.BooleanOptionalAction, default=False,
                    help="3D voxel losses only inside mask_camera (default off: every voxel, as the official code)")
     p.add_argument("--head-init", default="", choices=["", "prior", "official"],
@@ -63,7 +70,9 @@ def config_from_args(args):
         preset=args.preset, dataroot=str(args.dataroot), out=str(args.out), version=version, split=args.split,
         supervision=args.supervision, horizon=args.horizon, flow=args.flow, flow_mover=args.flow_mover,
         dynamic_filter=args.dynamic_filter, disocclusion=args.disocclusion, loss_weighting=args.loss_weighting,
-        depth_loss=args.depth_loss, density_scale=args.density_scale, voxel_mask=args.voxel_mask,
+        depth_loss=args.depth_loss, density_scale=args.density_scale, sigma_is=args.sigma_is,
+        render_depth_weight=args.render_depth_weight, render_semantics=args.render_semantics,
+        free_prior_weight=args.free_prior_weight, voxel_mask=args.voxel_mask,
         head_init=args.head_init, free_space=args.free_space, free_rays_per_step=args.free_rays_per_step,
         free_space_weight=args.free_space_weight,
         max_steps=args.max_steps, time_limit_s=args.time_limit,

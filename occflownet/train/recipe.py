@@ -40,6 +40,10 @@ class TrainConfig:
     loss_weighting: bool = True
     depth_loss: bool = True          # rendered depth MSE and the LSS LiDAR depth BCE
     density_scale: float = 1.0       # rendering uses τ_i = density_scale · σ_i · δ_i; 1.0 = official (σ per metre)
+    sigma_is: str = "density"        # rendering reads σ as "density" (per metre, official) or "opacity" (per voxel)
+    render_depth_weight: float = 0.05  # weight of the rendered-depth MSE (official 0.05)
+    render_semantics: str = "mixture"  # CE on the rendered logit mixture (official) or on it ÷ weight sum
+    free_prior_weight: float = 0.0   # mean -log(1 - σ) over all voxels (0 = off, official)
     voxel_mask: bool = False         # 3D voxel losses only inside mask_camera (official: False, every voxel)
     head_init: str = ""              # "" = the preset's; "prior" or "official" (model/presets.py HEAD_INITS)
     free_space: bool = False         # also render LiDAR beams without a return; their opacity → 0 (beyond the paper)
@@ -76,6 +80,8 @@ class TrainConfig:
             raise ValueError("flow_mover must be 'idw' or 'nearest'")
         if self.free_space and not self.uses_2d:
             raise ValueError("free_space renders LiDAR beams: it needs supervision '2d' or '2d+3d'")
+        if self.render_depth_weight < 0 or self.free_prior_weight < 0:
+            raise ValueError("render_depth_weight and free_prior_weight must be >= 0")
         if self.free_rays_per_step < 1 or self.free_space_weight < 0:
             raise ValueError("free_rays_per_step must be >= 1 and free_space_weight >= 0")
 
