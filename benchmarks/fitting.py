@@ -72,14 +72,22 @@ def _fog(record: dict, part: str) -> str:
     return "n/a" if value is None else f"{value:.2f}"
 
 
+def _best_tau(record: dict) -> str:
+    by = {float(t): v for t, v in (record.get("geometry_by_tau") or {}).items() if v is not None}
+    if not by:
+        return "n/a"
+    tau = max(by, key=by.get)
+    return f"{100 * by[tau]:.1f} ({tau:g})"
+
+
 def tables(results: Path, ratio: tuple[int, int]) -> str:
     records = sorted(_records(results), key=lambda r: (r["steps"], r["row"], r.get("variant", OFFICIAL), r["seed"]))
-    lines = ["| steps | row | variant | seed | mIoU | geometry IoU | fog (mask_camera) | fog (crossed) | fog (never crossed) | "
-             + " | ".join(CLASSES) + " |", "|---|---|---|---|---|---|---|---|---|" + "---|" * len(CLASSES)]
+    lines = ["| steps | row | variant | seed | mIoU | geometry IoU | at best τ | fog (mask_camera) | fog (crossed) | fog (never crossed) | "
+             + " | ".join(CLASSES) + " |", "|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(CLASSES)]
     for r in records:
         cam = r["metrics"]["occupancy"]["camera_mask"]
         lines.append(f"| {r['steps']} | {r['row']} | {r.get('variant', OFFICIAL)} | {r['seed']} | {_pct(cam['miou'])} | {_pct(cam['geometry_iou'])} | "
-                     f"{_fog(r, 'camera_mask')} | {_fog(r, 'crossed')} | {_fog(r, 'never_crossed')} | "
+                     f"{_best_tau(r)} | {_fog(r, 'camera_mask')} | {_fog(r, 'crossed')} | {_fog(r, 'never_crossed')} | "
                      + " | ".join(_pct(cam["iou_per_class"].get(c)) for c in CLASSES) + " |")
     by = {_key(r): r["metrics"]["occupancy"]["camera_mask"] for r in records}
     a, b = ratio
