@@ -54,12 +54,14 @@ def train_row(train_root, run: Path, row: int, steps: int, seed: int, rays: int,
 
 
 def evaluate_row(val_root, run: Path) -> dict:
-    """{"metrics": the eval JSON of the run's last checkpoint on split 'all' of ``val_root``, "density": σ figures}."""
+    """{"metrics": the eval JSON of the run's last checkpoint on split 'all' of ``val_root``, "density": σ figures,
+    "geometry_by_tau": geometry IoU inside mask_camera at several τ}."""
     predictions = run / "val_predictions"
     evaluate = [sys.executable, "-m", "occflownet", "eval", "--checkpoint", str(run / "checkpoints" / "last.pt"),
                 "--dataroot", str(val_root), "--split", "all", "--save-predictions", str(predictions)]
     res = subprocess.run(evaluate, check=True, capture_output=True, text=True)
-    out = {"metrics": json.loads(res.stdout), "density": density_stats(predictions)}
+    out = {"metrics": json.loads(res.stdout), "density": density_stats(predictions),
+           "geometry_by_tau": geometry_by_tau(predictions, val_root)}
     shutil.rmtree(predictions)
     return out
 
@@ -135,6 +137,40 @@ def density_stats(predictions: Path, tau: float = 0.35) -> dict:
     return {"samples": len(files), "median": float(q[0]), "p99": float(q[1]), "p999": float(q[2]),
             "max": float(density.max()), "frac_ge_tau": float(np.mean(density >= tau)), "tau": tau,
             "frac_occupied": float(occupied)}
+
+
+TAUS = (0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.7)
+
+
+def geometry_by_tau(predictions: Path, root, taus=TAUS) -> dict:
+    """{str(τ): geometry IoU inside mask_camera over all saved predictions (σ ≥ τ against labels != free)}, for the
+    keyframes of ``root`` whose ``<token>.npz`` is in ``predictions``. Tells whether a row that scores 0 at its own
+    τ has learned the geometry at another level of σ (the opacity reading, for one, needs a lower σ for the same
+    fog)."""
+    import numpy as np
+
+    from occflownet.data.index import load_index
+    from occflownet.data.loaders import load_occupancy
+    from occflownet.occ3d import FREE
+
+    index = load_index(root, None, check_tables=False)
+    inter = np.zeros(len(taus))
+    union = np.zeros(len(taus))
+    for p in range(len(index)):
+        sample = index[p]
+        path = predictions / f"{sample.token}.npz"
+        if not path.is_file():
+            continue
+        labels = load_occupancy(root, sample.occupancy_path)
+        mask = labels.mask_camera.astype(bool)
+        truth = (labels.semantics != FREE)[mask]
+        with np.load(path) as saved:
+            density = saved["density"][mask]
+        for i, tau in enumerate(taus):
+            pred = density >= tau
+            inter[i] += np.count_nonzero(pred & truth)
+            union[i] += np.count_nonzero(pred | truth)
+    return {str(t): float(inter[i] / union[i]) if union[i] else None for i, t in enumerate(taus)}
 
 
 def _ratio(x):

@@ -8,6 +8,8 @@ PRESET_NAMES: tuple[str, ...] = ("tiny", "base", "paper")   # model presets (mod
 HEAD_INITS: tuple[str, ...] = ("prior", "official")         # σ/semantic head initialisations (model/decoder.py)
 SUPERVISION_MODES: tuple[str, ...] = ("2d", "3d", "2d+3d")  # LiDAR rendering, Occ3D voxel labels, both
 FLOW_MOVERS: tuple[str, ...] = ("idw", "nearest")           # occupancy-flow movers (render/occupancy_flow.py)
+SIGMA_READINGS: tuple[str, ...] = ("density", "opacity")    # how rendering reads σ (render/volume_render.py)
+RENDER_SEMANTICS: tuple[str, ...] = ("mixture", "normalized")  # CE on the rendered mixture or on it ÷ weight sum
 
 
 def supervision_parts(mode: str) -> frozenset[str]:

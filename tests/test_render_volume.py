@@ -317,3 +317,45 @@ assert torch.get_num_threads() == before == 1, (before, torch.get_num_threads(),
 """
     env = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "2"}
     subprocess.run([sys.executable, "-c", code], check=True, env=env)
+
+
+def test_opacity_reading_makes_one_voxel_opaque_and_keeps_the_density_reading_official():
+    # one voxel at σ = 0.999: read as a density (official) it stops about 1 - exp(-0.4 · 0.999) ≈ 33 % of the light
+    # (more in the rendered sum, whose intervals around the surface samples stretch into the empty space before
+    # it); read as an opacity it stops 99.9 %, and the depth is its near face (5.0 m), within a voxel
+    density, logits = _slab(15, 15, cls=5)
+    density = density * 0.999
+    origins, dirs = _ray_along_x()
+    official = render_rays(density, logits, origins, dirs, RenderConfig(far=10.0, grid=SMALL),
+                           torch.Generator().manual_seed(0))
+    opaque = render_rays(density, logits, origins, dirs, RenderConfig(far=10.0, grid=SMALL, sigma_is="opacity"),
+                         torch.Generator().manual_seed(0))
+    assert torch.all(official.weight_sum < 0.7), official.weight_sum
+    assert torch.all(opaque.weight_sum > 0.99) and torch.all((opaque.depth - 5.0).abs() < 0.4), opaque.depth
+    # half a voxel's opacity keeps half the light over one voxel length: σ = 0.5 in a 3-voxel slab → 1 - 0.5³
+    # (uniform fine samples every 2.5 cm, so that the rendered sum is the integral)
+    density, logits = _slab(12, 14, cls=5)
+    half = render_rays(density * 0.5, logits, origins, dirs, RenderConfig(far=10.0, grid=SMALL, sigma_is="opacity",
+                                                                          uniform_mix=1.0, n_fine=400))
+    assert torch.all((half.weight_sum - 0.875).abs() < 0.03), half.weight_sum
+    with pytest.raises(ValueError, match="sigma_is"):
+        RenderConfig(sigma_is="alpha")
+
+
+def test_opacity_reading_numba_matches_grid_sample_values_and_gradients():
+    g = torch.Generator().manual_seed(3)
+    density = (torch.rand(SMALL.shape, generator=g, dtype=torch.float64) ** 4).requires_grad_()
+    logits = torch.randn(*SMALL.shape, NUM_CLASSES, generator=g, dtype=torch.float64).requires_grad_()
+    origins = torch.tensor([[-3.0, 0.1, 0.3]], dtype=torch.float64).repeat(16, 1)
+    dirs = torch.randn(16, 3, generator=g, dtype=torch.float64)
+    dirs = dirs / dirs.norm(dim=1, keepdim=True)
+    grads = {}
+    for lookup in ("numba", "grid_sample"):
+        out = render_rays(density, logits, origins, dirs, RenderConfig(far=8.0, grid=SMALL, lookup=lookup,
+                                                                       sigma_is="opacity"),
+                          torch.Generator().manual_seed(1))
+        gd, gl = torch.autograd.grad(out.depth.sum() + 0.3 * out.semantics.sum(), (density, logits))
+        grads[lookup] = (out.depth.detach(), gd, gl)
+    for a, b in zip(grads["numba"], grads["grid_sample"]):
+        assert torch.allclose(a, b, atol=1e-9, rtol=1e-7)
+    assert float(grads["numba"][1].abs().max()) > 0

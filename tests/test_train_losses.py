@@ -142,3 +142,42 @@ def test_free_space_loss_is_zero_for_transparent_beams_and_grows_with_opacity():
     assert float(terms["free_space"].detach()) == pytest.approx(2 * np.log(2.0), rel=1e-6)
     terms["total"].backward()
     assert torch.all(opacity.grad > 0)
+
+
+def test_normalized_render_semantics_ignores_how_much_light_stops():
+    # the raw mixture Σ w_i s_i of a half-transparent ray has logits scaled by 0.5: its CE is higher than the one
+    # of the same logits at full opacity; normalized, both are the CE of the logits themselves
+    logits = torch.zeros(1, NUM_CLASSES)
+    logits[0, 3] = 4.0
+    labels = torch.tensor([3])
+    ce = float(torch.nn.functional.cross_entropy(logits, labels))
+    for opacity in (0.5, 1.0):
+        rendered = SimpleNamespace(depth=torch.tensor([2.0]), semantics=opacity * logits,
+                                   weight_sum=torch.tensor([opacity]))
+        raw = ray_losses(rendered, torch.tensor([2.0]), labels, cfg=LossConfig())["render_semantics"]
+        norm = ray_losses(rendered, torch.tensor([2.0]), labels,
+                          cfg=LossConfig(render_semantics="normalized"))["render_semantics"]
+        assert float(norm) == pytest.approx(ce, rel=1e-5)
+        assert (float(raw) > ce + 0.1) == (opacity < 1.0)
+    with pytest.raises(ValueError, match="render_semantics"):
+        LossConfig(render_semantics="softmax")
+
+
+def test_free_prior_charges_every_voxel_by_its_opacity():
+    from occflownet.train.losses import free_prior_loss
+
+    density = torch.zeros(1, 2, 2, 2)
+    assert float(free_prior_loss(density)) == 0.0
+    density[0, 0, 0, 0] = 0.5
+    assert float(free_prior_loss(density)) == pytest.approx(np.log(2.0) / 8, rel=1e-6)
+    vox = dict(density=density, logits=torch.zeros(1, 2, 2, 2, NUM_CLASSES),
+               semantics_gt=torch.full((1, 2, 2, 2), 17, dtype=torch.uint8))
+    cfg = LossConfig(mode="3d", free_prior_weight=0.1)
+    with pytest.raises(ValueError, match="prior_density"):
+        total_loss(cfg, **vox)
+    prior = density.clone().requires_grad_()
+    terms = total_loss(cfg, **vox, prior_density=prior)
+    assert float(terms["free_prior"]) == pytest.approx(0.1 * np.log(2.0) / 8, rel=1e-6)
+    terms["free_prior"].backward()
+    assert float(prior.grad[0, 0, 0, 0]) > float(prior.grad[0, 1, 1, 1]) > 0
+    assert "free_prior" not in total_loss(LossConfig(mode="3d"), **vox)

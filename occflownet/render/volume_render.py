@@ -27,6 +27,12 @@ for CUDA ones.
 
 ``density_scale`` defaults to 1.0, the official behaviour (σ ∈ [0, 1] used directly as a density per metre).
 With it a fully occupied voxel has optical depth 0.4 and lets ~67 % of the light through: see docs/render.md.
+
+``sigma_is`` says how σ is read. ``"density"`` (default, official): σ is the extinction per metre, as above.
+``"opacity"`` (beyond the paper, docs/render.md): σ is the share of the light a voxel stops over one voxel length,
+so a voxel can be opaque: each voxel's σ becomes the extinction ``-ln(1 - min(σ, OPACITY_CAP)) / voxel_size``
+before the lookups (``opacity_to_extinction``); everything after (trilinear lookup, weights, ``density_scale``)
+is unchanged. ``RenderOutput.sigma`` then holds the interpolated extinction.
 """
 from __future__ import annotations
 
@@ -35,12 +41,21 @@ from dataclasses import dataclass
 
 import torch
 
+from occflownet.choices import SIGMA_READINGS
 from occflownet.occ3d import GRID, Grid
 from occflownet.render.lookup import grid_sample_lookup
 from occflownet.render.sampling import cdf_from_sigma, importance_sample, intervals_from_samples, \
     uniform_jittered_edges
 
 LOOKUPS = ("auto", "numba", "grid_sample")
+OPACITY_CAP = 0.999                       # opacity reading: σ above this stops 99.9 % of the light (17.3 /m at 0.4 m)
+
+
+def opacity_to_extinction(opacity: torch.Tensor, voxel_size: float) -> torch.Tensor:
+    """Per-voxel opacity α ∈ [0, 1] (any shape) → extinction per metre ``-ln(1 - min(α, OPACITY_CAP)) / voxel_size``:
+    a ray crossing one voxel length of it keeps ``1 - α`` of its light. Differentiable (the cap stops the gradient
+    above it)."""
+    return -torch.log1p(-opacity.clamp(max=OPACITY_CAP)) / voxel_size
 
 
 @dataclass(frozen=True)
@@ -56,6 +71,7 @@ class RenderConfig:
     fine_stratified: bool = False   # one U(0,1) offset per ray for the fine draws (official: False, mid-bin)
     uniform_mix: float = 0.0        # mix this fraction of a uniform pdf into the fine pdf (official: 0)
     lookup: str = "auto"            # "numba" (CPU kernels), "grid_sample" (reference, GPU) or "auto" (by device)
+    sigma_is: str = "density"       # "density" (official: σ per metre) or "opacity" (σ per voxel; see above)
     threads: int = 0                # numba threads (0: all cores); results do not depend on it
     grid: Grid = GRID
 
@@ -72,6 +88,8 @@ class RenderConfig:
             raise ValueError(f"RenderConfig.threads must be >= 0, got {self.threads}")
         if self.lookup not in LOOKUPS:
             raise ValueError(f"RenderConfig.lookup must be one of {LOOKUPS}, got {self.lookup!r}")
+        if self.sigma_is not in SIGMA_READINGS:
+            raise ValueError(f"RenderConfig.sigma_is must be one of {SIGMA_READINGS}, got {self.sigma_is!r}")
 
 
 @dataclass
@@ -82,7 +100,7 @@ class RenderOutput:
     semantics: torch.Tensor    # [R, C] Σ w_i s_i, raw logit mixture
     weight_sum: torch.Tensor   # [R] Σ w_i = 1 - T_final ∈ [0, 1]
     weights: torch.Tensor      # [R, N] w_i
-    sigma: torch.Tensor        # [R, N] σ_i at the fine samples (before density_scale)
+    sigma: torch.Tensor        # [R, N] σ_i at the fine samples (before density_scale; extinction when sigma_is="opacity")
     t_samples: torch.Tensor    # [R, N] sample distances (where σ and logits are looked up)
     t_starts: torch.Tensor     # [R, N] interval starts a_i
     t_ends: torch.Tensor       # [R, N] interval ends b_i
@@ -164,6 +182,8 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
     """
     grid = cfg.grid
     density, logits, batch_index = _check_inputs(density, logits, origins, directions, batch_index, grid)
+    if cfg.sigma_is == "opacity":
+        density = opacity_to_extinction(density, grid.voxel_size)
     n_rays, channels = origins.shape[0], logits.shape[-1]
     dtype, device = density.dtype, density.device
     origins = origins.detach().to(dtype)

@@ -16,6 +16,10 @@ Weighted terms (the names the training log uses): ``ray_losses`` → "render_dep
 ``voxel_losses`` → "voxel_density", "voxel_semantics"; ``lidar_depth_loss`` × ``lidar_depth_weight`` →
 "lidar_depth"; ``free_space_loss`` × ``free_space_weight`` → "free_space" (beyond the paper: LiDAR beams without a
 return render through empty space).
+Beyond the paper (options, docs/ablation.md): ``render_semantics="normalized"`` takes the CE of the rendered
+mixture divided by its weight sum (the official CE on the raw mixture Σ w_i s_i also falls when the ray's opacity
+grows anywhere along it, which rewards density in front of the surface); ``free_prior_weight`` > 0 adds
+"free_prior": the mean over every voxel of -log(1 - σ), a pull towards free space for the voxels no ray reaches.
 ``total_loss`` combines the terms for the mode ``"2d"``, ``"3d"`` or ``"2d+3d"`` and adds their sum as "total".
 ``render_losses`` and ``lidar_depth_loss`` are the unweighted primitives.
 """
@@ -27,7 +31,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from occflownet.choices import SUPERVISION_MODES
+from occflownet.choices import RENDER_SEMANTICS, SUPERVISION_MODES
 from occflownet.occ3d import FREE, NUM_CLASSES
 
 MODES = SUPERVISION_MODES
@@ -44,12 +48,17 @@ class LossConfig:
     voxel_density_weight: float = 1.0   # 3D: BCE on σ
     voxel_semantic_weight: float = 1.0  # 3D: CE on the logits of occupied voxels
     free_space_weight: float = 1.0      # free-space beams: BCE of their rendered opacity towards 0 (when given)
+    render_semantics: str = "mixture"   # CE on the raw mixture (official) or on it ÷ weight sum ("normalized")
+    free_prior_weight: float = 0.0      # mean -log(1 - σ) over all voxels (0 = off, the official setting)
 
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"LossConfig.mode must be one of {MODES}, got {self.mode!r}")
+        if self.render_semantics not in RENDER_SEMANTICS:
+            raise ValueError(f"LossConfig.render_semantics must be one of {RENDER_SEMANTICS}, "
+                             f"got {self.render_semantics!r}")
         for name in ("depth_weight", "semantic_weight", "lidar_depth_weight", "voxel_density_weight",
-                     "voxel_semantic_weight", "free_space_weight"):
+                     "voxel_semantic_weight", "free_space_weight", "free_prior_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"LossConfig.{name} must be >= 0, got {getattr(self, name)}")
 
@@ -92,8 +101,11 @@ def render_losses(depth: torch.Tensor, semantics: torch.Tensor, depth_gt: torch.
 def ray_losses(rendered, depth_gt: torch.Tensor, labels_gt: torch.Tensor, class_weights: torch.Tensor | None = None,
                cfg: LossConfig = LossConfig()) -> dict[str, torch.Tensor]:
     """Weighted rendering terms {"render_depth": depth_weight · MSE, "render_semantics": semantic_weight · CE} for
-    ``rendered`` (a ``RenderOutput``: depth [R], semantics [R, 17]); see ``render_losses``."""
-    r = render_losses(rendered.depth, rendered.semantics, depth_gt, labels_gt, class_weights)
+    ``rendered`` (a ``RenderOutput``: depth [R], semantics [R, 17], weight_sum [R]); see ``render_losses``."""
+    semantics = rendered.semantics
+    if cfg.render_semantics == "normalized":  # the logits the ray sees, whatever share of its light stops
+        semantics = semantics / rendered.weight_sum.clamp(min=1e-4).unsqueeze(-1)
+    r = render_losses(rendered.depth, semantics, depth_gt, labels_gt, class_weights)
     return {"render_depth": cfg.depth_weight * r["depth"], "render_semantics": cfg.semantic_weight * r["semantics"]}
 
 
@@ -106,6 +118,14 @@ def free_space_loss(opacity: torch.Tensor) -> torch.Tensor:
     if opacity.shape[0] == 0:
         return opacity.sum()
     return -torch.log1p(-opacity.clamp(0.0, 1.0 - 1e-4)).mean()
+
+
+def free_prior_loss(density: torch.Tensor) -> torch.Tensor:
+    """Unweighted free prior: mean over all voxels of -log(1 - σ), density [B, X, Y, Z] in [0, 1] (clamped at
+    1 - 1e-4). With ``sigma_is="opacity"`` it is each voxel's optical depth, so it charges every voxel by how much
+    light it would stop; the rays' terms outweigh it where rays go."""
+    with torch.autocast(device_type=density.device.type, enabled=False):
+        return -torch.log1p(-density.float().clamp(0.0, 1.0 - 1e-4)).mean()
 
 
 def lidar_depth_targets(feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor,
@@ -221,14 +241,15 @@ def _require(what: str, **inputs) -> None:
 def total_loss(cfg: LossConfig, *, rendered=None, depth_gt=None, labels_gt=None, class_weights=None,
                depth_prob=None, feature_intrinsics=None, cam2ego=None, points_ego=None, depth_bin_centers=None,
                density=None, logits=None, semantics_gt=None, voxel_mask=None,
-               free_opacity=None) -> dict[str, torch.Tensor]:
+               free_opacity=None, prior_density=None) -> dict[str, torch.Tensor]:
     """Weighted loss terms of the configured mode plus their sum under "total".
 
     2D terms (modes "2d", "2d+3d"): ``rendered`` (a ``RenderOutput``), ``depth_gt`` [R], ``labels_gt`` [R],
     ``class_weights`` [17] or None → "render_depth", "render_semantics". 3D terms (modes "3d", "2d+3d"):
     ``density``, ``logits``, ``semantics_gt``, ``voxel_mask`` → "voxel_density", "voxel_semantics". LiDAR depth
     (any mode, when ``lidar_depth_weight`` > 0 and ``depth_prob`` is given): "lidar_depth". Free-space beams (any
-    mode, when ``free_opacity`` [F] is given): "free_space". Every term is already
+    mode, when ``free_opacity`` [F] is given): "free_space". Free prior (any mode, when ``free_prior_weight`` > 0:
+    ``prior_density`` [B, X, Y, Z] is required): "free_prior". Every term is already
     multiplied by its weight. A missing input the mode needs raises ValueError naming it.
     """
     terms: dict[str, torch.Tensor] = {}
@@ -245,6 +266,9 @@ def total_loss(cfg: LossConfig, *, rendered=None, depth_gt=None, labels_gt=None,
             depth_prob, feature_intrinsics, cam2ego, points_ego, depth_bin_centers)
     if free_opacity is not None and cfg.free_space_weight > 0:
         terms["free_space"] = cfg.free_space_weight * free_space_loss(free_opacity)
+    if cfg.free_prior_weight > 0:
+        _require("free prior (free_prior_weight > 0)", prior_density=prior_density)
+        terms["free_prior"] = cfg.free_prior_weight * free_prior_loss(prior_density)
     if not terms:
         raise ValueError("total_loss produced no term: check LossConfig.mode and the inputs")
     terms["total"] = sum(terms.values())

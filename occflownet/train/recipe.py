@@ -5,7 +5,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from occflownet.choices import FLOW_MOVERS, HEAD_INITS, PRESET_NAMES, SUPERVISION_MODES, supervision_parts
+from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, PRESET_NAMES, RENDER_SEMANTICS, SIGMA_READINGS,
+                                SUPERVISION_MODES, supervision_parts)
 from occflownet.options import option
 
 # The per-preset recipe: the values a TrainConfig field left at None takes. The official values (AdamW 1e-4,
@@ -50,6 +51,12 @@ class TrainConfig:
     depth_loss: bool = option(True, "rendered-depth MSE and LiDAR depth BCE (off: semantics only)")
     density_scale: float = option(1.0, "rendering optical depth per metre = scale * sigma (1.0 = the official, "
                                        "unscaled sigma)")
+    sigma_is: str = option("density", "rendering reads sigma as a density per metre (official) or an opacity per "
+                                      "voxel (one voxel can stop the light; docs/render.md)", choices=SIGMA_READINGS)
+    render_depth_weight: float = option(0.05, "weight of the rendered-depth MSE (0.05 = official)")
+    render_semantics: str = option("mixture", "CE on the rendered logit mixture (official) or on it divided by the "
+                                              "ray's weight sum", choices=RENDER_SEMANTICS)
+    free_prior_weight: float = option(0.0, "weight of the mean -log(1 - sigma) over all voxels (0: off, official)")
     voxel_mask: bool = option(False, "3D voxel losses only inside mask_camera (off: every voxel, as the official "
                                      "code)")
     head_init: str = option("", "σ/semantic head init: prior (σ ≈ 0.1 at the start) or official (Xavier, zero "
@@ -91,6 +98,11 @@ class TrainConfig:
             raise ValueError(f"head_init must be one of {HEAD_INIT_CHOICES}, got {self.head_init!r}")
         if self.free_space and not self.uses_2d:
             raise ValueError("free_space renders LiDAR beams: it needs supervision '2d' or '2d+3d'")
+        if self.sigma_is not in SIGMA_READINGS or self.render_semantics not in RENDER_SEMANTICS:
+            raise ValueError(f"sigma_is must be one of {SIGMA_READINGS} and render_semantics one of "
+                             f"{RENDER_SEMANTICS}, got {self.sigma_is!r}, {self.render_semantics!r}")
+        if self.render_depth_weight < 0 or self.free_prior_weight < 0:
+            raise ValueError("render_depth_weight and free_prior_weight must be >= 0")
         if self.free_rays_per_step < 1 or self.free_space_weight < 0:
             raise ValueError("free_rays_per_step must be >= 1 and free_space_weight >= 0")
 

@@ -25,10 +25,12 @@ class LossComputer:
     def __init__(self, cfg: TrainConfig, model_cfg: ModelConfig, class_weights: torch.Tensor | None,
                  render_cfg: RenderConfig | None = None):
         self.cfg = cfg
-        self.render_cfg = render_cfg or RenderConfig(density_scale=cfg.density_scale)
+        self.render_cfg = render_cfg or RenderConfig(density_scale=cfg.density_scale, sigma_is=cfg.sigma_is)
         self.class_weights = class_weights
         self.depth_bins = torch.tensor(model_cfg.depth_bin_centers(), dtype=torch.float32)
-        self.loss_cfg = L.LossConfig(mode=cfg.supervision, free_space_weight=cfg.free_space_weight)
+        self.loss_cfg = L.LossConfig(mode=cfg.supervision, free_space_weight=cfg.free_space_weight,
+                                     depth_weight=cfg.render_depth_weight, render_semantics=cfg.render_semantics,
+                                     free_prior_weight=cfg.free_prior_weight)
         if not cfg.depth_loss:  # "semantics only": no rendered-depth and no LiDAR-depth term
             self.loss_cfg = replace(self.loss_cfg, depth_weight=0.0, lidar_depth_weight=0.0)
 
@@ -70,6 +72,8 @@ class LossComputer:
             # every voxel by default, as the official 3D training (use_mask=False); mask_camera only when asked
             inputs.update(density=density, logits=logits, semantics_gt=batch["occ_semantics"].to(device),
                           voxel_mask=batch["occ_mask"].to(device) if cfg.voxel_mask else None)
+        if self.loss_cfg.free_prior_weight > 0:
+            inputs["prior_density"] = density
         terms = L.total_loss(self.loss_cfg, **inputs)
         terms["loss"] = terms.pop("total")
         return terms
