@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 from occflownet import choices
-from occflownet.choices import FLOW_MOVERS, HEAD_INITS, PRESET_NAMES, SUPERVISION_MODES, supervision_parts
+from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, PRESET_NAMES, RENDER_SEMANTICS, SIGMA_READINGS,
+                                SUPERVISION_MODES, supervision_parts)
 from occflownet.cli import build_parser
 from occflownet.commands.train import config_from_args
 from occflownet.options import config_argv
@@ -20,7 +21,8 @@ from occflownet.train.recipe import PRESET_RECIPES, TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
 SETS = {"PRESET_NAMES": ("tiny", "base", "paper"), "HEAD_INITS": ("prior", "official"),
-        "SUPERVISION_MODES": ("2d", "3d", "2d+3d"), "FLOW_MOVERS": ("idw", "nearest")}
+        "SUPERVISION_MODES": ("2d", "3d", "2d+3d"), "FLOW_MOVERS": ("idw", "nearest"),
+        "SIGMA_READINGS": ("density", "opacity"), "RENDER_SEMANTICS": ("mixture", "normalized")}
 # The loss terms are chosen from the mode in train/losses.py, which the loss-term restructuring of issue 21
 # rewrites; its mode tests `cfg.mode in ("2d", "2d+3d")` stay until then.
 PENDING = {"occflownet/train/losses.py"}
@@ -56,7 +58,8 @@ def _choices_of(verb: str) -> dict[str, tuple]:
 
 def test_the_command_lines_offer_the_same_choices():
     assert _choices_of("train") == {"preset": PRESET_NAMES, "supervision": SUPERVISION_MODES,
-                                    "flow_mover": FLOW_MOVERS, "head_init": ("", *HEAD_INITS)}
+                                    "flow_mover": FLOW_MOVERS, "head_init": ("", *HEAD_INITS),
+                                    "sigma_is": SIGMA_READINGS, "render_semantics": RENDER_SEMANTICS}
     assert _choices_of("quickstart") == {"supervision": SUPERVISION_MODES}
     for verb in ("export", "predict"):
         assert _choices_of(verb)["preset"] == PRESET_NAMES
@@ -100,7 +103,7 @@ def _other_value(f: dataclasses.Field, value):
     if f.name in ("rays_per_step", "warmup_steps", "checkpoint_every", "free_rays_per_step", "horizon"):
         return 7
     if f.name in ("lr", "ema_decay", "threshold", "time_limit_s", "density_scale", "free_space_weight",
-                  "weight_decay", "grad_clip"):
+                  "weight_decay", "grad_clip", "render_depth_weight", "free_prior_weight"):
         return 0.125
     if isinstance(value, int):
         return value + 3
