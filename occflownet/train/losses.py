@@ -123,9 +123,10 @@ def free_space_loss(opacity: torch.Tensor) -> torch.Tensor:
 def free_prior_loss(density: torch.Tensor) -> torch.Tensor:
     """Unweighted free prior: mean over all voxels of -log(1 - σ), density [B, X, Y, Z] in [0, 1] (clamped at
     1 - 1e-4). With ``sigma_is="opacity"`` it is each voxel's optical depth, so it charges every voxel by how much
-    light it would stop; the rays' terms outweigh it where rays go."""
+    light it would stop; the rays' terms outweigh it where rays go. The same -log(1 - x) as ``free_space_loss``,
+    over voxels instead of beams."""
     with torch.autocast(device_type=density.device.type, enabled=False):
-        return -torch.log1p(-density.float().clamp(0.0, 1.0 - 1e-4)).mean()
+        return free_space_loss(density.float().reshape(-1))
 
 
 def lidar_depth_targets(feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor,
