@@ -155,14 +155,16 @@ def test_3d_supervision_without_gts_fails_before_training(prepared_synth_root, t
 
 
 def test_free_space_beams_and_unmasked_voxel_losses_train(prepared_synth_root, tmp_path):
-    # 2d+3d with free-space beams: the log has the free-space term; the 3D losses run over every voxel unless
-    # --voxel-mask is given (official use_mask=False)
+    # 2d+3d with free-space beams and beyond-grid rays: the log has the free-space term; the 3D losses run over
+    # every voxel unless --voxel-mask is given (official use_mask=False)
     root, _ = prepared_synth_root
     out = tmp_path / "free"
     assert main(_train_argv(root, out, "--max-steps", "2", "--horizon", "1", "--supervision", "2d+3d",
-                            "--free-space", "--free-rays-per-step", "256", "--head-init", "official")) == 0
+                            "--free-space", "--free-beyond-grid", "--free-rays-per-step", "256", "--head-init",
+                            "official")) == 0
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert {"free_space", "voxel_density", "render_depth"} <= set(log[0]) and log[0]["free_space"] > 0
     assert log[0]["rays_per_s"] > 0 and log[0]["voxels_per_s"] > 0        # what the step supervised, per second
     config = json.loads((out / "train_config.json").read_text())
-    assert config["free_space"] and not config["voxel_mask"] and config["head_init"] == "official"
+    assert config["free_space"] and config["free_beyond_grid"] and not config["voxel_mask"]
+    assert config["head_init"] == "official"

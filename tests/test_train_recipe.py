@@ -42,3 +42,11 @@ def test_old_config_dicts_still_load():
 def test_unknown_preset_is_an_error():
     with pytest.raises(ValueError, match="unknown preset 'huge'"):
         TrainConfig(preset="huge")
+
+
+@pytest.mark.parametrize("field", ["free_space", "free_beyond_grid"])
+def test_free_rays_need_rendering_supervision(field):
+    with pytest.raises(ValueError, match="need supervision '2d' or '2d\\+3d'"):
+        TrainConfig(supervision="3d", **{field: True})
+    cfg = TrainConfig(supervision="2d", **{field: True})
+    assert cfg.uses_free_rays and not TrainConfig(supervision="2d").uses_free_rays

@@ -46,6 +46,7 @@ class RayConfig:
     min_depth: float = 0.05                 # minimum camera z-depth of a hit, metres
     ignored_raw_labels: tuple[int, ...] = (EGO_VEHICLE_RAW_LABEL,)  # lidarseg raw classes that make no ray
     free_space: FreeSpaceConfig | None = None  # also recover free-space beams (data/free_space.py); None: off
+    beyond_grid: bool = False               # camera rays to points beyond the grid become free rays (see free_rays)
 
     def __post_init__(self):
         if self.horizon < 0:
@@ -145,9 +146,10 @@ class FrameHits:
 
 @dataclass(frozen=True)
 class FreeRays:
-    """F free-space beams (LiDAR firings without a return), all in the current ego frame of one keyframe."""
+    """F free-space rays, all in the current ego frame of one keyframe: LiDAR firings without a return, and camera
+    rays to LiDAR points beyond the grid (``RayConfig.beyond_grid``); the grid is empty along each of them."""
 
-    origins: np.ndarray       # float32 [F, 3]  LiDAR centre of the frame the beam was fired in
+    origins: np.ndarray       # float32 [F, 3]  LiDAR or camera centre of the frame the ray comes from
     directions: np.ndarray    # float32 [F, 3]  unit
     time_offsets: np.ndarray  # int8    [F]     keyframe offset t of that frame
 
@@ -234,17 +236,30 @@ class RayBuilder:
         return RayBatch.concatenate(parts)
 
     def free_rays(self, position: int) -> FreeRays:
-        """The free-space beams of keyframe ``position`` and its neighbours t ∈ [-O, O], current ego frame
-        (empty unless ``RayConfig.free_space`` is set)."""
+        """The free-space rays of keyframe ``position`` and its neighbours t ∈ [-O, O], current ego frame: the
+        free-space beams (when ``RayConfig.free_space`` is set) and the beyond-grid rays (when ``beyond_grid``)."""
         to_current = invert(self.index.arrays["lidar_ego2global"][position])
-        origins, directions, offsets = [], [], []
+        parts = []
         for t, j in self.index.neighbours(position, self.config.horizon):
             f = self.frame(j)
-            origins.append(np.repeat(transform_points(to_current, f.lidar_origin[None]), len(f.free_directions), 0))
-            directions.append(f.free_directions @ to_current[:3, :3].T)
-            offsets.append(np.full(len(f.free_directions), t, dtype=np.int8))
-        return FreeRays(np.concatenate(origins).astype(np.float32), np.concatenate(directions).astype(np.float32),
-                        np.concatenate(offsets))
+            origin = transform_points(to_current, f.lidar_origin[None])
+            parts.append((np.repeat(origin, len(f.free_directions), 0), f.free_directions @ to_current[:3, :3].T, t))
+            if self.config.beyond_grid:
+                parts.append(self._beyond_grid(f, to_current, t))
+        return FreeRays(np.concatenate([o for o, _, _ in parts]).astype(np.float32),
+                        np.concatenate([d for _, d, _ in parts]).astype(np.float32),
+                        np.concatenate([np.full(len(o), t, dtype=np.int8) for o, _, t in parts]))
+
+    @staticmethod
+    def _beyond_grid(f: FrameHits, to_current: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """Beyond-grid rays of one frame (beyond the paper; docs/ablation.md): its camera rays whose LiDAR point
+        lies outside the grid of the current ego frame, from cameras inside it. The grid is convex, so such a ray
+        leaves it before reaching the point and never comes back: every voxel it crosses is free (at time t).
+        Training rays end inside the grid (as the official code filters them), so without these the free space in
+        front of distant or tall surfaces gets no supervision. → (origins [K, 3], directions [K, 3], t)."""
+        centers = transform_points(to_current, f.centers)
+        keep = ~GRID.contains(transform_points(to_current, f.points)) & GRID.contains(centers)[f.cameras]
+        return centers[f.cameras[keep]], f.directions[keep] @ to_current[:3, :3].T, t
 
     def visible_point_labels(self, position: int) -> np.ndarray:
         """uint8 [P]: Occ3D labels of the distinct LiDAR points of keyframe ``position`` inside the grid that

@@ -128,8 +128,8 @@ class VoxelDecoder(nn.Module):
         # the per-voxel layers run on 2-D [rows, channels] tensors: onnxruntime then fuses bias and ReLU (Gemm)
         if self.up is not None:
             x = self.up(x).reshape(-1, self.head_channels)                         # [M·s³, Ch]
-            if fine_points is not None:
-                x = torch.index_add(x, 0, fine_points[0], fine_points[1])
+            if fine_points is not None:  # summed in float32 (under bf16 autocast the upsampling gives bf16)
+                x = torch.index_add(x.float(), 0, fine_points[0], fine_points[1].float())
             x = torch.relu(x)
         return x
 

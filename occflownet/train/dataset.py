@@ -50,7 +50,8 @@ class TrainingSamples(Dataset):
         self.flow_records = flow_records or {}
         # With occupancy flow, dynamic rays of temporal frames are kept and rendered through the warped volume.
         ray_cfg = RayConfig(horizon=cfg.horizon, dynamic_filter=cfg.dynamic_filter and not cfg.flow,
-                            free_space=FreeSpaceConfig() if cfg.free_space else None)
+                            free_space=FreeSpaceConfig() if cfg.free_space else None,
+                            beyond_grid=cfg.free_beyond_grid)
         self.rays = RayBuilder(index, dataroot, ray_cfg, cache_size=2 * cfg.horizon + 2)
 
     def __len__(self) -> int:
@@ -105,8 +106,8 @@ class TrainingSamples(Dataset):
         return (t != 0).astype(np.int64)
 
     def _free_rays(self, position: int, rng: np.random.Generator):
-        """``free_rays_per_step`` free-space beams of the keyframe and its neighbours, or None (off / none found)."""
-        if not self.cfg.free_space:
+        """``free_rays_per_step`` free rays of the keyframe and its neighbours, or None (off / none found)."""
+        if not self.cfg.uses_free_rays:
             return None
         free = self.rays.free_rays(position)
         if len(free) == 0:

@@ -63,7 +63,9 @@ class TrainConfig:
                                 "bias); empty: the preset's", choices=HEAD_INIT_CHOICES)
     free_space: bool = option(False, "also render LiDAR beams that returned nothing; their opacity goes to 0 "
                                      "(beyond the paper)")
-    free_rays_per_step: int = option(2048, "free-space beams per sample per step (with --free-space)")
+    free_beyond_grid: bool = option(False, "also render the camera rays to LiDAR points beyond the grid as free "
+                                           "rays: the grid is empty along them (beyond the paper)")
+    free_rays_per_step: int = option(2048, "free rays per sample per step (with --free-space/--free-beyond-grid)")
     free_space_weight: float = option(1.0, "weight of the free-space term -log(1 - opacity)")
     max_steps: int = option(1000, "optimisation steps")
     time_limit_s: float = option(0.0, "stop with a checkpoint after this many seconds (0: no limit)",
@@ -96,8 +98,8 @@ class TrainConfig:
             raise ValueError(f"flow_mover must be one of {FLOW_MOVERS}, got {self.flow_mover!r}")
         if self.head_init not in HEAD_INIT_CHOICES:
             raise ValueError(f"head_init must be one of {HEAD_INIT_CHOICES}, got {self.head_init!r}")
-        if self.free_space and not self.uses_2d:
-            raise ValueError("free_space renders LiDAR beams: it needs supervision '2d' or '2d+3d'")
+        if (self.free_space or self.free_beyond_grid) and not self.uses_2d:
+            raise ValueError("free_space and free_beyond_grid render rays: they need supervision '2d' or '2d+3d'")
         if self.sigma_is not in SIGMA_READINGS or self.render_semantics not in RENDER_SEMANTICS:
             raise ValueError(f"sigma_is must be one of {SIGMA_READINGS} and render_semantics one of "
                              f"{RENDER_SEMANTICS}, got {self.sigma_is!r}, {self.render_semantics!r}")
@@ -113,6 +115,11 @@ class TrainConfig:
     @property
     def uses_3d(self) -> bool:
         return "3d" in supervision_parts(self.supervision)
+
+    @property
+    def uses_free_rays(self) -> bool:
+        """Whether free rays are rendered (free-space beams and/or beyond-grid rays)."""
+        return self.free_space or self.free_beyond_grid
 
     def resolved_threshold(self) -> float:
         if self.threshold is not None:
