@@ -168,3 +168,31 @@ def test_free_space_beams_and_unmasked_voxel_losses_train(prepared_synth_root, t
     config = json.loads((out / "train_config.json").read_text())
     assert config["free_space"] and config["free_beyond_grid"] and not config["voxel_mask"]
     assert config["head_init"] == "official"
+
+
+def test_amp_uses_bf16_only_where_the_device_computes_it_natively(monkeypatch):
+    from occflownet.train.loop import autocast_dtype
+    cpu = torch.device("cpu")
+    assert autocast_dtype(torch.device("cuda"), amp=True) == torch.bfloat16
+    assert autocast_dtype(torch.device("cuda"), amp=False) is None
+    for avx512_bf16, amx, expected in ((False, False, None), (True, False, torch.bfloat16), (False, True, torch.bfloat16)):
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda v=avx512_bf16: v)
+        monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda v=amx: v)
+        assert autocast_dtype(cpu, amp=True) == expected
+        assert autocast_dtype(cpu, amp=False) is None
+
+
+def test_progress_bar_shows_what_the_run_processes_and_the_time_left_to_its_budget(tmp_path):
+    from occflownet.train.distributed import DistInfo
+    from occflownet.train.loop import _Monitor
+    from occflownet.train.recipe import TrainConfig
+
+    cfg = TrainConfig(supervision="3d", out=str(tmp_path), log_every=1, max_steps=10, time_limit_s=600)
+    monitor = _Monitor(cfg, 0, DistInfo(), progress=True)
+    monitor.after_step(1, {"loss": torch.tensor(2.5)}, torch.tensor(1.0), 1e-3, {"voxels": 640000})
+    postfix = monitor.bar.postfix
+    monitor.close()
+    assert "loss=2.500" in postfix and "voxels_s=" in postfix and "rays_s" not in postfix
+    minutes, seconds = postfix.split("budget_left=")[1].split(",")[0].split(":")
+    assert 9 * 60 + 50 <= int(minutes) * 60 + int(seconds) <= 600
+    assert (tmp_path / "log.jsonl").is_file()

@@ -61,6 +61,17 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def autocast_dtype(device: torch.device, amp: bool = True) -> torch.dtype | None:
+    """The network's autocast dtype for ``--amp``: bfloat16 on CUDA and on CPUs with native bf16 arithmetic
+    (AVX512-BF16 or AMX), None (float32) elsewhere: emulated bf16 is slower than float32 (docs/training.md)."""
+    if not amp:
+        return None
+    if device.type == "cuda":
+        return torch.bfloat16
+    native = device.type == "cpu" and (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
+    return torch.bfloat16 if native else None
+
+
 def last_checkpoint(out) -> Path:
     return Path(out) / "checkpoints" / "last.pt"
 
@@ -176,7 +187,7 @@ def _run_steps(state: TrainingState, net, losses: LossComputer, loader: Iterable
     """Optimisation steps until the loader ends (at ``max_steps``) or the time limit; rank 0 saves ``state`` to
     ``ckpt_path`` every ``checkpoint_every`` steps, at the last step and at the time limit."""
     cfg = state.cfg
-    amp_dtype = torch.bfloat16 if device.type == "cuda" and cfg.amp else None
+    amp_dtype = autocast_dtype(device, cfg.amp)
     t_start = time.monotonic()
     state.model.train()
     for batch in loader:
@@ -295,12 +306,14 @@ class _Monitor:
 
             self.bar = tqdm(total=cfg.max_steps, initial=start_step, desc="train", unit="step", file=sys.stderr,
                             dynamic_ncols=True)
-        self.t_log, self.work_since_log = time.monotonic(), {}
+        self.t_start = self.t_log = time.monotonic()
+        self.work_since_log = {}
 
     def after_step(self, step: int, terms: dict, grad_norm: torch.Tensor, lr: float, work: dict[str, int]) -> None:
         """Record step ``step`` (counted after the update): loss terms, lr, grad norm, and per second over all ranks
         what the steps supervised (``work``, :func:`step_work`: ``rays_per_s`` and/or ``voxels_per_s``); the bar
-        shows the loss and those rates (tqdm adds steps/s)."""
+        shows the loss, those rates and, under ``time_limit_s``, the time left to that budget (tqdm adds steps/s and
+        the time to ``max_steps``; the run ends at whichever comes first)."""
         for key, n in work.items():
             self.work_since_log[key] = self.work_since_log.get(key, 0) + n
         if self.logger.enabled and (step % self.cfg.log_every == 0 or step == self.cfg.max_steps):
@@ -312,8 +325,12 @@ class _Monitor:
             self.logger.log(step, record)
             self.t_log, self.work_since_log = now, {}
             if self.bar is not None:
-                self.bar.set_postfix(loss=f"{record['loss']:.3f}",
-                                     **{key.replace("_per_s", "_s"): f"{v:.0f}" for key, v in rates.items()})
+                postfix = {"loss": f"{record['loss']:.3f}",
+                           **{key.replace("_per_s", "_s"): f"{v:.0f}" for key, v in rates.items()}}
+                if self.cfg.time_limit_s > 0:
+                    left = max(0.0, self.cfg.time_limit_s - (now - self.t_start))
+                    postfix["budget_left"] = f"{int(left // 60)}:{int(left % 60):02d}"
+                self.bar.set_postfix(postfix)
         if self.bar is not None:
             self.bar.update(1)
 

@@ -81,7 +81,8 @@ class TrainConfig:
     log_every: int = option(10, "steps between log records")
     seed: int = option(0, "seed of the weights, the sampling and the rays")
     num_workers: int = option(2, "data loader processes")
-    amp: bool = option(True, "mixed precision where the device supports it (CUDA bf16)")
+    amp: bool = option(True, "bf16 autocast of the network where the device computes bf16 natively "
+                                   "(CUDA; CPUs with AVX512-BF16 or AMX); rendering and losses stay float32")
     device: str = option("auto", "torch device (auto: CUDA when available)")
     threshold: float | None = option(None, "τ stored with the model (default 0.35 for 2d, 0.30 with 3D labels)")
 
