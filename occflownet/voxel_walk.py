@@ -113,7 +113,7 @@ def _use_numba(engine: str) -> bool:
 
 
 def _walk_numba(volume, o, d, empty, lower, voxel_size, t_end, ties, visited) -> VoxelWalk:
-    from occflownet.voxel_walk_numba import walk
+    from occflownet.voxel_walk_numba import keep_torch_threads, walk
 
     code = np.empty(len(o), dtype=np.uint8)
     t_exit = np.empty(len(o))
@@ -121,9 +121,10 @@ def _walk_numba(volume, o, d, empty, lower, voxel_size, t_end, ties, visited) ->
     ends = np.zeros(len(o)) if t_end is None else np.ascontiguousarray(np.asarray(t_end, np.float64).reshape(-1))
     if len(ends) != len(o):
         raise ValueError(f"t_end must have one value per ray ({len(o)}), got {len(ends)}")
-    walk(np.ascontiguousarray(volume, dtype=np.uint8), np.uint8(empty), np.ascontiguousarray(o),
-         np.ascontiguousarray(d), lower, voxel_size, ends, t_end is not None, ties == "last", seen, visited, code,
-         t_exit)
+    with keep_torch_threads():
+        walk(np.ascontiguousarray(volume, dtype=np.uint8), np.uint8(empty), np.ascontiguousarray(o),
+             np.ascontiguousarray(d), lower, voxel_size, ends, t_end is not None, ties == "last", seen, visited,
+             code, t_exit)
     return VoxelWalk(code, t_exit, seen if visited else None)
 
 

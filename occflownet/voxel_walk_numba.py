@@ -12,9 +12,27 @@ only when the numba engine is asked for or chosen by ``engine="auto"``.
 from __future__ import annotations
 
 import math
+import sys
+from contextlib import contextmanager
 
 import numpy as np
 from numba import njit, prange
+
+
+@contextmanager
+def keep_torch_threads():
+    """Run numba's parallel kernels without changing torch's intra-op thread count. numba's OpenMP threading layer
+    shares the OpenMP runtime with torch and, when it starts, raises torch's count to its own (e.g. from
+    ``OMP_NUM_THREADS=1`` to the core count): a training run started in the same process after a labelling or
+    rendering kernel would otherwise run with other threads than a fresh process (and, resumed, give other weights).
+    Only when torch is already imported; this module does not import it."""
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None else None   # first: asking numba starts its layer
+    try:
+        yield
+    finally:
+        if torch is not None and torch.get_num_threads() != before:
+            torch.set_num_threads(before)
 
 
 @njit(cache=True, inline="always")

@@ -133,3 +133,18 @@ def test_traverse_stops_at_first_occupied_voxel():
     occupied[6] = True
     got = traverse(np.array([[0.05, 0.5, 0.5]]), np.array([[1.0, 0.0, 0.0]]), occupied, None, (0, 0, 0), 1.0)
     assert got[:, 0, 0].tolist() == [True] * 7 + [False] * 3
+
+
+def test_the_numba_walk_leaves_torchs_thread_count_alone():
+    # in a fresh process: numba's OpenMP layer, when it starts, raises torch's intra-op count to its own (here
+    # from OMP_NUM_THREADS=1 to NUMBA_NUM_THREADS=2); a run trained after labelling in one process must keep its 1
+    pytest.importorskip("numba")
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, torch; from occflownet.voxel_walk import walk_rays; before = torch.get_num_threads();"
+            "walk_rays(np.zeros((8, 8, 8), np.uint8), np.random.rand(64, 3) * 8, np.random.randn(64, 3),"
+            " engine='numba'); print(before, torch.get_num_threads())")
+    env = {**__import__("os").environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "2"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["1", "1"]

@@ -18,25 +18,22 @@ import numba
 import torch
 
 from occflownet.render import numba_kernels as kernels
+from occflownet.voxel_walk_numba import keep_torch_threads
 
 
 @contextmanager
 def numba_threads(n: int):
     """Run the enclosed kernels with ``n`` numba threads (n <= 0: numba's default), then restore numba's count and
-    torch's intra-op thread count. numba's OpenMP threading layer shares the OpenMP runtime with torch and, when it
-    starts, raises torch's count to its own (e.g. from ``OMP_NUM_THREADS=1`` to the core count), so without the
-    restore the first training step of a process would run torch with other threads than every later step (and a
-    resumed run would differ from an uninterrupted one)."""
-    old_torch = torch.get_num_threads()          # first: asking numba starts its threading layer
-    old = numba.get_num_threads()
-    n = min(n, numba.config.NUMBA_NUM_THREADS) if n > 0 else numba.config.NUMBA_NUM_THREADS
-    numba.set_num_threads(n)
-    try:
-        yield n
-    finally:
-        numba.set_num_threads(old)
-        if torch.get_num_threads() != old_torch:
-            torch.set_num_threads(old_torch)
+    torch's intra-op thread count (:func:`occflownet.voxel_walk_numba.keep_torch_threads`: without it the first
+    training step of a process would run torch with other threads than every later step)."""
+    with keep_torch_threads():
+        old = numba.get_num_threads()
+        n = min(n, numba.config.NUMBA_NUM_THREADS) if n > 0 else numba.config.NUMBA_NUM_THREADS
+        numba.set_num_threads(n)
+        try:
+            yield n
+        finally:
+            numba.set_num_threads(old)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
