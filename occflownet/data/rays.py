@@ -30,6 +30,8 @@ import numpy as np
 
 from occflownet.occ3d import DYNAMIC_FILTER_CLASSES, GRID, map_lidarseg
 from occflownet.data.free_space import FreeSpaceConfig, missing_beams
+from occflownet.data.line_of_sight import blocked_by_boxes
+from occflownet.data.records import EgoBoxes
 from occflownet.data.loaders import load_lidar, load_lidarseg
 from occflownet.data.tables import DatasetError
 from occflownet.geometry import invert, transform_points
@@ -47,6 +49,8 @@ class RayConfig:
     ignored_raw_labels: tuple[int, ...] = (EGO_VEHICLE_RAW_LABEL,)  # lidarseg raw classes that make no ray
     free_space: FreeSpaceConfig | None = None  # also recover free-space beams (data/free_space.py); None: off
     beyond_grid: bool = False               # camera rays to points beyond the grid become free rays (see free_rays)
+    box_line_of_sight: bool = False         # drop rays that pass through an object box before their point
+                                            # (data/line_of_sight.py; beyond the paper)
 
     def __post_init__(self):
         if self.horizon < 0:
@@ -202,6 +206,7 @@ class RayBuilder:
         self.config = config
         self.cache_size = cache_size
         self._cache: OrderedDict[int, FrameHits] = OrderedDict()
+        self._sight: OrderedDict[tuple, object] = OrderedDict()   # line-of-sight masks (box_line_of_sight)
 
     def frame(self, position: int) -> FrameHits:
         """The (cached) global-frame hits of keyframe ``position``."""
@@ -226,10 +231,16 @@ class RayBuilder:
             keep = GRID.contains(points)
             if t != 0 and self.config.dynamic_filter:
                 keep &= ~np.isin(f.labels, dynamic)
+            keep = np.flatnonzero(keep)
             cams = f.cameras[keep]
+            origins = transform_points(to_current, f.centers)[cams]
+            directions = f.directions[keep] @ to_current[:3, :3].T
+            if self.config.box_line_of_sight:
+                seen = self._cached(("rays", position, j), lambda: ~blocked_by_boxes(
+                    origins, directions, f.depths[keep], self.sight_boxes(position, j)))
+                keep, cams, origins, directions = keep[seen], cams[seen], origins[seen], directions[seen]
             parts.append(RayBatch(
-                origins=transform_points(to_current, f.centers)[cams].astype(np.float32),
-                directions=(f.directions[keep] @ to_current[:3, :3].T).astype(np.float32),
+                origins=origins.astype(np.float32), directions=directions.astype(np.float32),
                 depths=f.depths[keep].astype(np.float32), labels=f.labels[keep],
                 time_offsets=np.full(len(cams), t, dtype=np.int8), cameras=cams, pixels=f.pixels[keep],
             ))
@@ -243,12 +254,40 @@ class RayBuilder:
         for t, j in self.index.neighbours(position, self.config.horizon):
             f = self.frame(j)
             origin = transform_points(to_current, f.lidar_origin[None])
-            parts.append((np.repeat(origin, len(f.free_directions), 0), f.free_directions @ to_current[:3, :3].T, t))
+            frame_parts = [(np.repeat(origin, len(f.free_directions), 0), f.free_directions @ to_current[:3, :3].T, t)]
             if self.config.beyond_grid:
-                parts.append(self._beyond_grid(f, to_current, t))
+                frame_parts.append(self._beyond_grid(f, to_current, t))
+            if self.config.box_line_of_sight:
+                seen = self._cached(("free", position, j), lambda: [
+                    ~blocked_by_boxes(o, d, np.full(len(o), np.inf), self.sight_boxes(position, j))
+                    for o, d, _ in frame_parts])
+                frame_parts = [(o[k], d[k], t) for (o, d, t), k in zip(frame_parts, seen)]
+            parts.extend(frame_parts)
         return FreeRays(np.concatenate([o for o, _, _ in parts]).astype(np.float32),
                         np.concatenate([d for _, d, _ in parts]).astype(np.float32),
                         np.concatenate([np.full(len(o), t, dtype=np.int8) for o, _, t in parts]))
+
+    def _cached(self, key, compute):
+        """``compute()``, remembered under ``key`` for the last few keyframes (line-of-sight masks are fixed per
+        keyframe pair and cost tens of ms a frame to recompute)."""
+        if key not in self._sight:
+            self._sight[key] = compute()
+            while len(self._sight) > 2 * (2 * self.config.horizon + 1) * max(self.cache_size, 1):
+                self._sight.popitem(last=False)
+        self._sight.move_to_end(key)
+        return self._sight[key]
+
+    def sight_boxes(self, position: int, j: int) -> EgoBoxes:
+        """The boxes a ray of keyframe ``j`` (rendered for keyframe ``position``) must not pass through, in the
+        current ego frame of ``position``: the objects of keyframe ``j`` (the ray's own time) and, for j ≠ position,
+        those of ``position`` too (where objects stand in the labels being fitted). Only boxes that reach into the
+        grid are kept; a ray is dropped where one of them lies between its origin and its point."""
+        ego2global = self.index.arrays["lidar_ego2global"][position]
+        boxes = EgoBoxes.concatenate([self.index.boxes(k).in_frame(ego2global) for k in sorted({position, j})])
+        reach = np.linalg.norm(boxes.sizes, axis=1)[:, None] / 2.0 + 1.0
+        near = np.all((boxes.centers > np.asarray(GRID.lower) - reach)
+                      & (boxes.centers < np.asarray(GRID.upper) + reach), axis=1)
+        return boxes.take(near)
 
     @staticmethod
     def _beyond_grid(f: FrameHits, to_current: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray, int]:

@@ -10,7 +10,7 @@ Frames and conventions (nuScenes):
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -56,6 +56,15 @@ class EgoBoxes:
 
     def __len__(self) -> int:
         return len(self.labels)
+
+    def take(self, index) -> "EgoBoxes":
+        """The boxes selected by an integer index array or boolean mask."""
+        return EgoBoxes(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+    @staticmethod
+    def concatenate(parts: list["EgoBoxes"]) -> "EgoBoxes":
+        """The boxes of several sets (all in the same ego frame), in order."""
+        return EgoBoxes(**{f.name: np.concatenate([getattr(b, f.name) for b in parts]) for f in fields(EgoBoxes)})
 
     def transforms(self) -> np.ndarray:
         """float64 [B, 4, 4]: box frame → this ego frame."""

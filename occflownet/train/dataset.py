@@ -51,7 +51,7 @@ class TrainingSamples(Dataset):
         # With occupancy flow, dynamic rays of temporal frames are kept and rendered through the warped volume.
         ray_cfg = RayConfig(horizon=cfg.horizon, dynamic_filter=cfg.dynamic_filter and not cfg.flow,
                             free_space=FreeSpaceConfig() if cfg.free_space else None,
-                            beyond_grid=cfg.free_beyond_grid)
+                            beyond_grid=cfg.free_beyond_grid, box_line_of_sight=cfg.box_line_of_sight)
         self.rays = RayBuilder(index, dataroot, ray_cfg, cache_size=2 * cfg.horizon + 2)
 
     def __len__(self) -> int:

@@ -65,6 +65,9 @@ class TrainConfig:
                                      "(beyond the paper)")
     free_beyond_grid: bool = option(False, "also render the camera rays to LiDAR points beyond the grid as free "
                                            "rays: the grid is empty along them (beyond the paper)")
+    box_line_of_sight: bool = option(False, "drop the rays (and free rays) that pass through an annotated object "
+                                            "box before their point: hidden from the camera, or crossing where an "
+                                            "object stands at the keyframe (beyond the paper)")
     free_rays_per_step: int = option(2048, "free rays per sample per step (with --free-space/--free-beyond-grid)")
     free_space_weight: float = option(1.0, "weight of the free-space term -log(1 - opacity)")
     max_steps: int = option(1000, "optimisation steps")
