@@ -50,3 +50,10 @@ def test_free_rays_need_rendering_supervision(field):
         TrainConfig(supervision="3d", **{field: True})
     cfg = TrainConfig(supervision="2d", **{field: True})
     assert cfg.uses_free_rays and not TrainConfig(supervision="2d").uses_free_rays
+
+
+def test_free_stretches_before_the_points_need_rendering_supervision():
+    with pytest.raises(ValueError, match="need supervision '2d' or '2d\\+3d'"):
+        TrainConfig(supervision="3d", free_before_point=True)
+    # they are stretches of the rendered rays, not free rays the data pipeline builds
+    assert not TrainConfig(supervision="2d", free_before_point=True).uses_free_rays

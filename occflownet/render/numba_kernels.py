@@ -114,8 +114,8 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
 
     In: sigma [n·X·Y·Z] (flat σ volumes), logits [n·X·Y·Z, C], origins/directions [R, 3] (ego frame of the grid,
     unit directions; float64), edges [R, M + 1] coarse bin edges (float64), ray_volume [R] int64, order [R] int64,
-    bias [R] fine-draw offsets (0.5 = mid-bin), lower [3], voxel_size, shape [3] int64.
-    Out (written): depth [R], semantics [R, C], weight_sum [R], weights/sigma_out/t_out/a_out/b_out [R, N].
+    bias [R] fine-draw offsets (0.5 = mid-bin), lower [3], voxel_size, shape [3] int64, near (scalar), far [R]
+    (each ray's far end, float64; the last coarse edge). Out (written): depth [R], semantics [R, C], weight_sum [R], weights/sigma_out/t_out/a_out/b_out [R, N].
     The draws and intervals are computed in float64; the fine pass then reads the *stored* t, a, b (the output
     dtype), exactly as the backward kernels will, so that forward and backward see the same samples.
     """
@@ -145,7 +145,7 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
         cdf[n_bins] = 1.0
         if uniform_mix > 0.0:  # both CDFs end at 1: the mixture needs no normalisation
             for m in range(n_bins + 1):
-                cdf[m] = (1.0 - uniform_mix) * cdf[m] + uniform_mix * (edges[r, m] - near) / (far - near)
+                cdf[m] = (1.0 - uniform_mix) * cdf[m] + uniform_mix * (edges[r, m] - near) / (far[r] - near)
         # fine draws: invert the piecewise-linear CDF (searchsorted "right" over cdf[:-1], as nerfacc)
         lo, hi = cdf[0], cdf[n_bins]
         step = (hi - lo) / n_fine
@@ -162,7 +162,7 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
         for i in range(n_fine):
             t = ts[i]
             a_out[r, i] = max(t - 0.5 * (ts[1] - ts[0]), near) if i == 0 else 0.5 * (ts[i - 1] + t)
-            b_out[r, i] = min(t + 0.5 * (t - ts[i - 1]), far) if i == n_fine - 1 else 0.5 * (t + ts[i + 1])
+            b_out[r, i] = min(t + 0.5 * (t - ts[i - 1]), far[r]) if i == n_fine - 1 else 0.5 * (t + ts[i + 1])
             t_out[r, i] = t
         # fine pass, cell by cell (a run of samples in one cell shares its 8 corners)
         ci = cj = ck = -(1 << 30)

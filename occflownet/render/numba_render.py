@@ -1,6 +1,6 @@
 """The fast CPU rendering path: ``numba_kernels`` wrapped as a ``torch.autograd.Function``.
 
-``NumbaRender.apply(density, logits_flat, origins, directions, edges, ray_volume, bias, cfg)``:
+``NumbaRender.apply(density, logits_flat, origins, directions, edges, ray_volume, bias, far, cfg)``:
 density [n, X, Y, Z] (σ), logits_flat [n·X·Y·Z, C] (channels-last logits, flattened), origins/directions [R, 3]
 (ego frame of ``cfg.grid``), edges [R, M + 1] jittered coarse edges, ray_volume [R] long, bias [R] fine-draw
 offsets → depth [R], semantics [R, C], weight_sum [R] (differentiable in density and logits), then weights,
@@ -63,7 +63,7 @@ def cache_friendly_order(origins: torch.Tensor, directions: torch.Tensor, ray_vo
 class NumbaRender(torch.autograd.Function):
 
     @staticmethod
-    def forward(ctx, density, logits_flat, origins, directions, edges, ray_volume, bias, cfg):
+    def forward(ctx, density, logits_flat, origins, directions, edges, ray_volume, bias, far, cfg):
         n_rays, n_fine, channels = origins.shape[0], cfg.n_fine, logits_flat.shape[1]
         new = origins.new_empty
         depth, semantics, weight_sum = new(n_rays), new(n_rays, channels), new(n_rays)
@@ -72,7 +72,7 @@ class NumbaRender(torch.autograd.Function):
         arrays = [_np(density.reshape(-1)), _np(logits_flat)] + [_f64(x) for x in (origins, directions, edges)]
         with numba_threads(cfg.threads):
             kernels.render_forward(*arrays, _np(ray_volume), order, _f64(bias), *_grid_args(cfg.grid),
-                                   float(cfg.near), float(cfg.far), float(cfg.density_scale), float(cfg.uniform_mix),
+                                   float(cfg.near), _f64(far), float(cfg.density_scale), float(cfg.uniform_mix),
                                    *(x.numpy() for x in (depth, semantics, weight_sum, weights, sigma, t, a, b)))
         ctx.cfg = cfg
         ctx.order = order
@@ -102,4 +102,4 @@ class NumbaRender(torch.autograd.Function):
                                            _np(g_depth), _np(g_sem), _np(g_wsum), g_sigma_s.numpy())
             kernels.scatter_grads(*geometry, lower, voxel_size, shape, _np(weights), _np(t), g_sigma_s.numpy(),
                                   _np(g_sem), threads, grad_sigma.view(-1).numpy(), grad_logits.numpy())
-        return (grad_sigma if need_sigma else None, grad_logits if need_logits else None) + (None,) * 6
+        return (grad_sigma if need_sigma else None, grad_logits if need_logits else None) + (None,) * 7

@@ -16,17 +16,22 @@ from __future__ import annotations
 import torch
 
 
-def uniform_jittered_edges(n_rays: int, n_bins: int, near: float, far: float, *, jitter: bool = True,
+def uniform_jittered_edges(n_rays: int, n_bins: int, near: float, far, *, jitter: bool = True,
                            generator: torch.Generator | None = None, device=None,
                            dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """Bin edges [n_rays, n_bins + 1] in metres, increasing, first = near, last = far.
+    """Bin edges [n_rays, n_bins + 1] in metres, increasing, first = near, last = far (a float, or a tensor [R]:
+    each ray's own far end).
 
     With ``jitter`` each interior edge is shifted by an independent U(-0.5, 0.5) · (far - near) / n_bins, so
     neighbouring bins never swap order and the union of the bins is exactly [near, far].
     """
     if n_bins < 1:
         raise ValueError(f"n_bins must be >= 1, got {n_bins}")
-    if not far > near:
+    if torch.is_tensor(far):
+        if far.shape != (n_rays,) or not bool((far > near).all()):
+            raise ValueError(f"per-ray far must be [{n_rays}] and greater than near ({near}) everywhere")
+        far = far.to(device=device, dtype=dtype)[:, None]
+    elif not far > near:
         raise ValueError(f"far ({far}) must be greater than near ({near})")
     unit = torch.linspace(0.0, 1.0, n_bins + 1, device=device, dtype=dtype).expand(n_rays, n_bins + 1)
     if jitter and n_bins > 1:
@@ -36,9 +41,10 @@ def uniform_jittered_edges(n_rays: int, n_bins: int, near: float, far: float, *,
     return near + unit * (far - near)
 
 
-def cdf_from_sigma(edges: torch.Tensor, sigma: torch.Tensor, cfg) -> torch.Tensor:
+def cdf_from_sigma(edges: torch.Tensor, sigma: torch.Tensor, cfg, far: torch.Tensor | None = None) -> torch.Tensor:
     """Coarse σ [R, M] at bins with edges [R, M + 1] → the fine-sampling CDF [R, M + 1], optionally mixed with a
-    uniform CDF (``cfg``: a ``RenderConfig``; density_scale, uniform_mix, near, far).
+    uniform CDF (``cfg``: a ``RenderConfig``; density_scale, uniform_mix, near, far; ``far`` [R]: per-ray far ends
+    instead of ``cfg.far``).
 
     The official distribution (its renderer: ``cdfs = 1 - cat([T_exclusive, 0])``): ``1 - T_m`` at the first M
     edges (``T_m`` = transmittance at the start of bin m) and exactly 1 at the last edge, so the light that passes
@@ -49,7 +55,8 @@ def cdf_from_sigma(edges: torch.Tensor, sigma: torch.Tensor, cfg) -> torch.Tenso
     cdf = 1.0 - torch.exp(-torch.cumsum(tau[:, :-1], dim=-1))
     cdf = torch.cat([cdf.new_zeros(cdf.shape[0], 1), cdf, cdf.new_ones(cdf.shape[0], 1)], dim=-1)
     if cfg.uniform_mix > 0:  # both CDFs end at 1, so the mixture is a CDF too
-        uniform = (edges - cfg.near) / (cfg.far - cfg.near)
+        far = cfg.far if far is None else far[:, None]
+        uniform = (edges - cfg.near) / (far - cfg.near)
         cdf = (1.0 - cfg.uniform_mix) * cdf + cfg.uniform_mix * uniform
     return cdf
 
@@ -86,17 +93,18 @@ def importance_sample(edges: torch.Tensor, cdf: torch.Tensor, n_samples: int, *,
     return t0 + frac * (t1 - t0)
 
 
-def intervals_from_samples(samples: torch.Tensor, near: float, far: float) -> tuple[torch.Tensor, torch.Tensor]:
+def intervals_from_samples(samples: torch.Tensor, near: float, far) -> tuple[torch.Tensor, torch.Tensor]:
     """Fine intervals around sorted samples [R, N] → (starts [R, N], ends [R, N]) in metres.
 
     Interior edges lie half-way between consecutive samples; the outer edges half a gap beyond the first and
-    last sample, clamped to [near, far] (nerfacc's ``compute_intervels_kernel``). Intervals tile a contiguous
-    stretch of the ray, so ``ends[:, i] == starts[:, i + 1]``.
+    last sample, clamped to [near, far] (nerfacc's ``compute_intervels_kernel``; far a float or a tensor [R, 1]).
+    Intervals tile a contiguous stretch of the ray, so ``ends[:, i] == starts[:, i + 1]``.
     """
     if samples.shape[-1] < 2:
         raise ValueError("intervals_from_samples needs at least 2 samples per ray")
     mids = 0.5 * (samples[:, 1:] + samples[:, :-1])
     first = (samples[:, :1] - 0.5 * (samples[:, 1:2] - samples[:, :1])).clamp(min=near)
-    last = (samples[:, -1:] + 0.5 * (samples[:, -1:] - samples[:, -2:-1])).clamp(max=far)
+    last = samples[:, -1:] + 0.5 * (samples[:, -1:] - samples[:, -2:-1])
+    last = torch.minimum(last, far) if torch.is_tensor(far) else last.clamp(max=far)
     edges = torch.cat([first, mids, last], dim=-1)
     return edges[:, :-1], edges[:, 1:]

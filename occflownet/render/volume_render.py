@@ -173,12 +173,13 @@ def _use_numba(lookup: str, device: torch.device) -> bool:
 
 def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor,
                 cfg: RenderConfig = RenderConfig(), generator: torch.Generator | None = None,
-                batch_index: torch.Tensor | None = None) -> RenderOutput:
+                batch_index: torch.Tensor | None = None, far: torch.Tensor | None = None) -> RenderOutput:
     """Render depth and semantic logits for R rays through the voxel volume(s); see the module docstring.
 
     density [B, X, Y, Z] or [X, Y, Z]; logits [B, X, Y, Z, C] or [X, Y, Z, C]; origins, directions [R, 3]
-    (ego frame, unit directions); batch_index [R] long (required when B > 1). ``generator`` drives the
-    coarse jitter (and stratified fine draws) for reproducible sampling.
+    (ego frame, unit directions); batch_index [R] long (required when B > 1); far [R] (metres, > ``cfg.near``):
+    each ray's own far end instead of ``cfg.far`` (a segment: its weight sum is the opacity up to there).
+    ``generator`` drives the coarse jitter (and stratified fine draws) for reproducible sampling.
     """
     grid = cfg.grid
     density, logits, batch_index = _check_inputs(density, logits, origins, directions, batch_index, grid)
@@ -189,8 +190,10 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
     origins = origins.detach().to(dtype)
     directions = directions.detach().to(dtype)
 
-    edges = uniform_jittered_edges(n_rays, cfg.n_coarse, cfg.near, cfg.far, jitter=cfg.coarse_jitter,
-                                   generator=generator, device=device, dtype=dtype)
+    if far is not None:
+        far = far.detach().to(device=device, dtype=dtype)
+    edges = uniform_jittered_edges(n_rays, cfg.n_coarse, cfg.near, cfg.far if far is None else far,
+                                   jitter=cfg.coarse_jitter, generator=generator, device=device, dtype=dtype)
     if _use_numba(cfg.lookup, device):
         from occflownet.render.numba_render import NumbaRender
         if cfg.fine_stratified:
@@ -198,7 +201,8 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
         else:
             bias = torch.full((n_rays,), 0.5, device=device, dtype=dtype)
         depth, semantics, weight_sum, weights, sigma, t_samples, t_starts, t_ends = NumbaRender.apply(
-            density, logits.reshape(-1, channels), origins, directions, edges, batch_index, bias, cfg)
+            density, logits.reshape(-1, channels), origins, directions, edges, batch_index, bias,
+            torch.full((n_rays,), float(cfg.far), dtype=torch.float64) if far is None else far, cfg)
         return RenderOutput(depth=depth, semantics=semantics, weight_sum=weight_sum, weights=weights, sigma=sigma,
                             t_samples=t_samples, t_starts=t_starts, t_ends=t_ends)
 
@@ -207,10 +211,10 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
         mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
         points = origins[:, None, :] + mids[..., None] * directions[:, None, :]
         coarse_sigma = grid_sample_lookup(density.unsqueeze(-1), points, batch_index, grid)[..., 0]
-        cdf = cdf_from_sigma(edges, coarse_sigma, cfg)
+        cdf = cdf_from_sigma(edges, coarse_sigma, cfg, far)
         t_samples = importance_sample(edges, cdf, cfg.n_fine, stratified=cfg.fine_stratified,
                                       generator=generator)
-        t_starts, t_ends = intervals_from_samples(t_samples, cfg.near, cfg.far)
+        t_starts, t_ends = intervals_from_samples(t_samples, cfg.near, cfg.far if far is None else far[:, None])
         points = origins[:, None, :] + t_samples[..., None] * directions[:, None, :]
     volume = torch.cat([density.unsqueeze(-1), logits], dim=-1)
     values = grid_sample_lookup(volume, points, batch_index, grid)

@@ -242,14 +242,15 @@ def _require(what: str, **inputs) -> None:
 def total_loss(cfg: LossConfig, *, rendered=None, depth_gt=None, labels_gt=None, class_weights=None,
                depth_prob=None, feature_intrinsics=None, cam2ego=None, points_ego=None, depth_bin_centers=None,
                density=None, logits=None, semantics_gt=None, voxel_mask=None,
-               free_opacity=None, prior_density=None) -> dict[str, torch.Tensor]:
+               free_opacity=None, before_opacity=None, prior_density=None) -> dict[str, torch.Tensor]:
     """Weighted loss terms of the configured mode plus their sum under "total".
 
     2D terms (modes "2d", "2d+3d"): ``rendered`` (a ``RenderOutput``), ``depth_gt`` [R], ``labels_gt`` [R],
     ``class_weights`` [17] or None → "render_depth", "render_semantics". 3D terms (modes "3d", "2d+3d"):
     ``density``, ``logits``, ``semantics_gt``, ``voxel_mask`` → "voxel_density", "voxel_semantics". LiDAR depth
     (any mode, when ``lidar_depth_weight`` > 0 and ``depth_prob`` is given): "lidar_depth". Free-space beams (any
-    mode, when ``free_opacity`` [F] is given): "free_space". Free prior (any mode, when ``free_prior_weight`` > 0:
+    mode, when ``free_opacity`` [F] is given): "free_space"; the free stretches in front of the rays' points
+    (``before_opacity`` [S]): "free_before", the same loss and weight. Free prior (any mode, when ``free_prior_weight`` > 0:
     ``prior_density`` [B, X, Y, Z] is required): "free_prior". Every term is already
     multiplied by its weight. A missing input the mode needs raises ValueError naming it.
     """
@@ -267,6 +268,8 @@ def total_loss(cfg: LossConfig, *, rendered=None, depth_gt=None, labels_gt=None,
             depth_prob, feature_intrinsics, cam2ego, points_ego, depth_bin_centers)
     if free_opacity is not None and cfg.free_space_weight > 0:
         terms["free_space"] = cfg.free_space_weight * free_space_loss(free_opacity)
+    if before_opacity is not None and cfg.free_space_weight > 0:
+        terms["free_before"] = cfg.free_space_weight * free_space_loss(before_opacity)
     if cfg.free_prior_weight > 0:
         _require("free prior (free_prior_weight > 0)", prior_density=prior_density)
         terms["free_prior"] = cfg.free_prior_weight * free_prior_loss(prior_density)

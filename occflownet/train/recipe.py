@@ -68,7 +68,11 @@ class TrainConfig:
     box_line_of_sight: bool = option(False, "drop the rays (and free rays) that pass through an annotated object "
                                             "box before their point: hidden from the camera, or crossing where an "
                                             "object stands at the keyframe (beyond the paper)")
-    free_rays_per_step: int = option(2048, "free rays per sample per step (with --free-space/--free-beyond-grid)")
+    free_before_point: bool = option(False, "also render the stretch of each ray well in front of its LiDAR point "
+                                            "(up to 0.8 depth - 0.6 m) as free; its opacity goes to 0 (beyond the "
+                                            "paper)")
+    free_rays_per_step: int = option(2048, "free rays per sample per step (with --free-space/--free-beyond-grid; "
+                                           "--free-before-point renders as many of the rays' free stretches)")
     free_space_weight: float = option(1.0, "weight of the free-space term -log(1 - opacity)")
     max_steps: int = option(1000, "optimisation steps")
     time_limit_s: float = option(0.0, "stop with a checkpoint after this many seconds (0: no limit)",
@@ -102,8 +106,9 @@ class TrainConfig:
             raise ValueError(f"flow_mover must be one of {FLOW_MOVERS}, got {self.flow_mover!r}")
         if self.head_init not in HEAD_INIT_CHOICES:
             raise ValueError(f"head_init must be one of {HEAD_INIT_CHOICES}, got {self.head_init!r}")
-        if (self.free_space or self.free_beyond_grid) and not self.uses_2d:
-            raise ValueError("free_space and free_beyond_grid render rays: they need supervision '2d' or '2d+3d'")
+        if (self.free_space or self.free_beyond_grid or self.free_before_point) and not self.uses_2d:
+            raise ValueError("free_space, free_beyond_grid and free_before_point render rays: they need supervision "
+                             "'2d' or '2d+3d'")
         if self.sigma_is not in SIGMA_READINGS or self.render_semantics not in RENDER_SEMANTICS:
             raise ValueError(f"sigma_is must be one of {SIGMA_READINGS} and render_semantics one of "
                              f"{RENDER_SEMANTICS}, got {self.sigma_is!r}, {self.render_semantics!r}")

@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import torch
 
+from occflownet.data.rays import FREE_BEFORE_MIN, free_segment_ends
 from occflownet.train import losses as L
 from occflownet.model.presets import ModelConfig
 from occflownet.render.disocclusion import disocclude
@@ -48,6 +49,21 @@ class LossComputer:
             dens = torch.where(temporal[:, None, None, None], disocclude(density, logits)[source], dens)
         return dens, logits[source]
 
+    def _before_opacity(self, dens, logi, batch: dict, device, generator) -> torch.Tensor:
+        """Opacity [S] of the free stretches in front of the points of ``free_rays_per_step`` rays per sample (every
+        k-th ray of the batch: the rays are drawn at random and stored sample by sample), each through its ray's
+        volume (``free_segment_ends``)."""
+        total = len(batch["ray_depths"])
+        n = self.cfg.free_rays_per_step * int(batch["images"].shape[0])
+        pick = torch.arange(0, total, max(1, total // n))[:n]
+        ends = free_segment_ends(batch["ray_depths"][pick])
+        keep = pick[ends >= FREE_BEFORE_MIN]
+        ends = ends[ends >= FREE_BEFORE_MIN]
+        out = render_rays(dens, logi, batch["ray_origins"][keep].to(device), batch["ray_directions"][keep].to(device),
+                          self.render_cfg, generator=generator, batch_index=batch["ray_volume"][keep].to(device),
+                          far=ends.to(device))
+        return out.weight_sum
+
     def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None) -> dict:
         cfg = self.cfg
         density, logits = outputs["density"].float(), outputs["logits"].float()
@@ -64,6 +80,8 @@ class LossComputer:
                 free = render_rays(dens, logi, batch["free_origins"].to(device), batch["free_directions"].to(device),
                                    self.render_cfg, generator=generator, batch_index=batch["free_volume"].to(device))
                 inputs["free_opacity"] = free.weight_sum
+            if cfg.free_before_point:
+                inputs["before_opacity"] = self._before_opacity(dens, logi, batch, device, generator)
         if cfg.depth_loss:
             inputs.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"],
                           cam2ego=batch["cam2ego"].to(device), points_ego=[p.to(device) for p in batch["depth_points"]],
