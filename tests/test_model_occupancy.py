@@ -1,3 +1,5 @@
+import copy
+
 import pytest
 import torch
 
@@ -101,3 +103,39 @@ def test_calibration_changes_the_prediction(tiny):
         d1 = tiny.inference(images, K, T)[1]
         d2 = tiny.inference(images, K, T2)[1]
     assert (d1 - d2).abs().max() > 1e-3
+
+
+def test_block_rows_is_the_inverse_of_unblock():
+    """block_rows maps a grid-layout row to the row unblock reads it from, for every stride and batch element."""
+    from occflownet.model.decoder import block_rows, unblock
+
+    shape = (8, 12, 4)
+    for stride in (1, 2, 4):
+        b = 2
+        block = torch.arange(b * 8 * 12 * 4).reshape(b, 8 // stride, 12 // stride, 4 // stride, stride ** 3)
+        grid = unblock(block, stride).reshape(-1)                 # grid row r holds the block row it came from
+        rows = torch.randperm(grid.numel(), generator=torch.Generator().manual_seed(stride))
+        assert torch.equal(block_rows(rows, shape, stride), grid[rows])
+
+
+def test_heads_at_rows_equal_the_full_grid_at_those_rows(tiny):
+    """forward(density_at=, logits_at=) runs the heads on the asked voxels only and gives exactly the full
+    forward's values there (in the rows' order), in eval and in training mode, for a batch of two."""
+    images, K, T = _inputs(batch=2)
+    g = torch.Generator().manual_seed(1)
+    rows_d = torch.randint(0, 2 * 200 * 200 * 16, (5000,), generator=g)
+    rows_l = torch.randint(0, 2 * 200 * 200 * 16, (3000,), generator=g)
+    for train in (False, True):
+        model = copy.deepcopy(tiny).train(train)            # training mode updates BatchNorm statistics
+        with torch.no_grad():
+            torch.manual_seed(0)
+            full = model(images, K, T)
+            torch.manual_seed(0)
+            part = model(images, K, T, density_at=rows_d, logits_at=rows_l)
+        assert part["density"].shape == (5000,) and part["logits"].shape == (3000, NUM_CLASSES)
+        assert "occupancy" not in part and ("occupancy" in full) == (not train)
+        torch.testing.assert_close(part["density"], full["density"].reshape(-1)[rows_d], rtol=1e-6, atol=1e-7)
+        torch.testing.assert_close(part["logits"], full["logits"].reshape(-1, NUM_CLASSES)[rows_l],
+                                   rtol=1e-6, atol=1e-6)
+        only_d = model(images, K, T, density_at=rows_d)      # one head restricted, the other over the grid
+        assert only_d["logits"].shape == (2, 200, 200, 16, NUM_CLASSES)

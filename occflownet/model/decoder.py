@@ -79,6 +79,19 @@ def unblock(x: torch.Tensor, stride: int) -> torch.Tensor:
     return x.reshape((b, xc * s, yc * s, zc * s) + rest)
 
 
+def block_rows(grid_rows: torch.Tensor, grid_shape: tuple[int, int, int], stride: int) -> torch.Tensor:
+    """Rows int64 [K] of the flattened grid layout [B·X·Y·Z] (row = ((b·X + x)·Y + y)·Z + z) → the same voxels' rows
+    of the flattened block layout [B·Xc·Yc·Zc·s³] (:func:`unblock`'s input, sub-voxel (sx, sy, sz) last)."""
+    x_n, y_n, z_n = grid_shape
+    s = stride
+    z = torch.remainder(grid_rows, z_n)
+    y = torch.remainder(torch.div(grid_rows, z_n, rounding_mode="floor"), y_n)
+    x = torch.remainder(torch.div(grid_rows, z_n * y_n, rounding_mode="floor"), x_n)
+    b = torch.div(grid_rows, x_n * y_n * z_n, rounding_mode="floor")
+    coarse = ((b * (x_n // s) + x // s) * (y_n // s) + y // s) * (z_n // s) + z // s
+    return ((coarse * s + x % s) * s + y % s) * s + z % s
+
+
 class VoxelDecoder(nn.Module):
     """Residual 3D trunk at stride ``stride`` + depth-to-space upsampling + per-voxel heads Φσ, Φs."""
 
@@ -133,12 +146,22 @@ class VoxelDecoder(nn.Module):
             x = torch.relu(x)
         return x
 
-    def forward(self, trunk: torch.Tensor, fine_points: tuple[torch.Tensor, torch.Tensor] | None):
+    def forward(self, trunk: torch.Tensor, fine_points: tuple[torch.Tensor, torch.Tensor] | None,
+                density_rows: torch.Tensor | None = None, logit_rows: torch.Tensor | None = None):
+        """→ (density logits, semantic logits) in block layout: [B, Xc, Yc, Zc, s³] and [B, Xc, Yc, Zc, s³, 17]
+        over every voxel, or [K] / [K, 17] at ``density_rows`` / ``logit_rows`` (int64 [K], rows of the flattened
+        block layout, :func:`block_rows`) when given: a head then runs on those voxels only."""
         b, xc, yc, zc, _ = trunk.shape
         s3 = self.stride ** 3
         x = self.voxel_features(trunk, fine_points)
-        sigma = self.sigma_head(x).reshape(b, xc, yc, zc, s3)
-        semantic = self.semantic_head(x).reshape(b, xc, yc, zc, s3, NUM_CLASSES)
+        if density_rows is None:
+            sigma = self.sigma_head(x).reshape(b, xc, yc, zc, s3)
+        else:
+            sigma = self.sigma_head(torch.index_select(x, 0, density_rows)).reshape(-1)
+        if logit_rows is None:
+            semantic = self.semantic_head(x).reshape(b, xc, yc, zc, s3, NUM_CLASSES)
+        else:
+            semantic = self.semantic_head(torch.index_select(x, 0, logit_rows))
         return sigma, semantic
 
     def fused_occupancy(self, trunk: torch.Tensor, fine_points, threshold: float):

@@ -12,10 +12,10 @@ import torch
 from torch import nn
 
 from occflownet.contract import NUM_CAMERAS
-from occflownet.occ3d import FREE
+from occflownet.occ3d import FREE, GRID
 from occflownet.model.backbone import ResNet
 from occflownet.model.presets import FEATURE_STRIDE, ModelConfig
-from occflownet.model.decoder import VoxelDecoder, unblock
+from occflownet.model.decoder import VoxelDecoder, block_rows, unblock
 from occflownet.model.lift import DepthContextHead, LiftSplat
 from occflownet.model.neck import Stride16Neck
 from occflownet.model.preprocess import preprocess_images, scale_intrinsics_to_features
@@ -74,21 +74,30 @@ class OccupancyModel(nn.Module):
         return trunk, fine_points, depth_prob, feature_k
 
     # ---------------------------------------------------------------- public entry points
-    def forward(self, images: torch.Tensor, intrinsics: torch.Tensor, cam2ego: torch.Tensor) -> dict:
+    def forward(self, images: torch.Tensor, intrinsics: torch.Tensor, cam2ego: torch.Tensor,
+                density_at: torch.Tensor | None = None, logits_at: torch.Tensor | None = None) -> dict:
         """Training/analysis outputs:
         density float [B, 200, 200, 16] (σ ∈ [0, 1]); logits float [B, 200, 200, 16, 17];
         depth_prob float [B, 6, D, h, w] (softmax over D, z-depth bins ``cfg.depth_bin_centers()``);
         feature_intrinsics float [B, 6, 3, 3] (camera frame → feature-map pixel coordinates);
-        occupancy uint8 [B, 200, 200, 16] (fused with τ = cfg.threshold)."""
+        in eval mode also occupancy uint8 [B, 200, 200, 16] (fused with τ = cfg.threshold; a training step has no
+        use for it).
+
+        ``density_at`` / ``logits_at``: int64 [K] rows of the flattened grid [B·200·200·16] (row = ((b·200 + x)·200
+        + y)·16 + z, ego frame): the head then runs on those voxels only and ``density`` is [K] / ``logits`` [K, 17]
+        in the rows' order (a 3D-label loss needs σ and the classes only where it has labels: far fewer voxels
+        than the grid). No occupancy is fused then."""
         trunk, fine_points, depth_prob, feature_k = self._lift(images, intrinsics, cam2ego)
-        sigma_logits, semantic_logits = self.decoder(trunk, fine_points)           # block layout
         s = self.cfg.decoder_stride
-        density = unblock(torch.sigmoid(sigma_logits), s)
-        logits = unblock(semantic_logits, s)
-        with torch.no_grad():
-            occupancy = fuse_occupancy(density, logits, self.cfg.threshold)
-        return {"density": density, "logits": logits, "depth_prob": depth_prob,
-                "feature_intrinsics": feature_k, "occupancy": occupancy}
+        to_block = lambda rows: None if rows is None else block_rows(rows, GRID.shape, s)  # noqa: E731
+        sigma_logits, semantic_logits = self.decoder(trunk, fine_points, to_block(density_at), to_block(logits_at))
+        density = torch.sigmoid(sigma_logits) if density_at is not None else unblock(torch.sigmoid(sigma_logits), s)
+        logits = semantic_logits if logits_at is not None else unblock(semantic_logits, s)
+        out = {"density": density, "logits": logits, "depth_prob": depth_prob, "feature_intrinsics": feature_k}
+        if not self.training and density_at is None and logits_at is None:
+            with torch.no_grad():
+                out["occupancy"] = fuse_occupancy(density, logits, self.cfg.threshold)
+        return out
 
     def inference(self, images: torch.Tensor, intrinsics: torch.Tensor, cam2ego: torch.Tensor):
         """The exported path: → (occupancy uint8 [B, 200, 200, 16], density float32 [B, 200, 200, 16]).
