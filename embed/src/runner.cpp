@@ -95,7 +95,8 @@ Calibration calibration_from_json(const json& calib, const std::vector<std::stri
                 fail(Error::kInvalidArgument, pre + "calibration of " + name + " lacks '" + key + "'");
         auto K = matrix<9>((*entry)["intrinsic"], 3, 3, pre + name + " intrinsic");
         double d = det3(K.data(), 3);
-        if (std::fabs(d) < 1e-9) fail(Error::kInvalidArgument, pre + name + " intrinsic is singular");
+        if (std::fabs(d) < contract::kSingularTolerance)
+            fail(Error::kInvalidArgument, pre + name + " intrinsic is singular");
         if (!(close(K[6], 0, 1e-6) && close(K[7], 0, 1e-6) && close(K[8], 1, 1e-6)))
             fail(Error::kInvalidArgument, pre + name + " intrinsic last row must be [0, 0, 1]");
         if (!(K[0] > 0 && K[4] > 0))
@@ -124,6 +125,8 @@ Calibration calibration_from_json(const json& calib, const std::vector<std::stri
 }
 
 // ------------------------------------------------------------------------------------------- metadata
+namespace key = contract::metadata;
+
 const json& require(const json& meta, const char* key, const std::string& source) {
     auto it = meta.find(key);
     if (it == meta.end()) fail(Error::kContract, source + ": model metadata lacks '" + key + "'");
@@ -140,87 +143,158 @@ std::vector<std::string> strings(const json& v, const char* key, const std::stri
     return out;
 }
 
-ModelInfo parse_metadata(const std::vector<std::pair<std::string, std::string>>& props, const std::string& source) {
+// metadata_props -> JSON values; a value that is not JSON (a foreign key) stays a plain string.
+json decode_metadata(const std::vector<std::pair<std::string, std::string>>& props) {
     json meta = json::object();
-    for (const auto& [key, text] : props) {
+    for (const auto& [name, text] : props) {
         json value = json::parse(text, nullptr, false);
-        meta[key] = value.is_discarded() ? json(text) : value;  // foreign keys may be plain strings
+        meta[name] = value.is_discarded() ? json(text) : value;
     }
+    return meta;
+}
+
+// Every required key is there (all missing ones named at once).
+void check_required_keys(const json& meta, const std::string& source) {
     std::string missing;
-    for (const char* key : {"classes", "free_index", "grid", "cameras", "class_colors", "threshold", "input_size",
-                            "default_calibration", "onnx_contract"})
-        if (!meta.contains(key)) missing += (missing.empty() ? "" : ", ") + std::string(key);
+    for (const char* k : key::kRequired)
+        if (!meta.contains(k)) missing += (missing.empty() ? "" : ", ") + std::string(k);
     if (!missing.empty())
-        fail(Error::kContract, source + ": model metadata lacks " + missing +
-                                   " (not an occflownet contract-v1 export?)");
-    ModelInfo info;
-    info.path = source;
-    const json& contract = require(meta, "onnx_contract", source);
-    if (!contract.is_string() || contract.get<std::string>() != "v1")
-        fail(Error::kContract, source + ": onnx_contract is " + contract.dump() + ", this library reads \"v1\"");
-    info.contract = "v1";
-    info.classes = strings(require(meta, "classes", source), "classes", source);
-    const json& free = require(meta, "free_index", source);
-    if (!free.is_number_integer() || free.get<long>() < 0 || free.get<long>() >= long(info.classes.size()))
-        fail(Error::kContract, source + ": free_index " + free.dump() + " is not a class index (0.." +
-                                   std::to_string(info.classes.size()) + ")");
-    info.free_index = free.get<int>();
-    const json& colors = require(meta, "class_colors", source);
-    if (!colors.is_array() || colors.size() != info.classes.size())
-        fail(Error::kContract, source + ": class_colors must have one RGB triple per class");
+        fail(Error::kContract, source + ": model metadata lacks " + missing + " (not an occflownet contract-" +
+                                   contract::kVersion + " export?)");
+}
+
+void check_contract_version(const json& meta, const std::string& source) {
+    const json& version = require(meta, key::kOnnxContract, source);
+    if (!version.is_string() || version.get<std::string>() != contract::kVersion)
+        fail(Error::kContract, source + ": " + key::kOnnxContract + " is " + version.dump() +
+                                   ", this library reads \"" + contract::kVersion + "\"");
+}
+
+int parse_free_index(const json& meta, std::size_t classes, const std::string& source) {
+    const json& free = require(meta, key::kFreeIndex, source);
+    if (!free.is_number_integer() || free.get<long>() < 0 || free.get<long>() >= long(classes))
+        fail(Error::kContract, source + ": " + key::kFreeIndex + " " + free.dump() + " is not a class index (0.." +
+                                   std::to_string(classes) + ")");
+    return free.get<int>();
+}
+
+std::vector<std::array<std::uint8_t, 3>> parse_class_colors(const json& meta, std::size_t classes,
+                                                             const std::string& source) {
+    const json& colors = require(meta, key::kClassColors, source);
+    const std::string pre = source + ": " + key::kClassColors;
+    if (!colors.is_array() || colors.size() != classes)
+        fail(Error::kContract, pre + " must have one RGB triple per class");
+    std::vector<std::array<std::uint8_t, 3>> out;
     for (const json& c : colors) {
-        if (!c.is_array() || c.size() != 3) fail(Error::kContract, source + ": class_colors entries must be [r, g, b]");
+        if (!c.is_array() || c.size() != 3) fail(Error::kContract, pre + " entries must be [r, g, b]");
         std::array<std::uint8_t, 3> rgb{};
         for (int i = 0; i < 3; ++i) {
             if (!c[i].is_number_integer() || c[i].get<long>() < 0 || c[i].get<long>() > 255)
-                fail(Error::kContract, source + ": class_colors values must be integers 0..255");
+                fail(Error::kContract, pre + " values must be integers 0..255");
             rgb[i] = std::uint8_t(c[i].get<int>());
         }
-        info.class_colors.push_back(rgb);
+        out.push_back(rgb);
     }
-    const json& grid = require(meta, "grid", source);
+    return out;
+}
+
+GridSpec parse_grid(const json& meta, const std::string& source) {
+    const json& grid = require(meta, key::kGrid, source);
+    GridSpec out;
     try {
         for (int i = 0; i < 3; ++i) {
-            info.grid.lower[i] = grid.at("lower").at(i).get<double>();
-            info.grid.upper[i] = grid.at("upper").at(i).get<double>();
-            info.grid.shape[i] = grid.at("shape").at(i).get<int>();
-            if (info.grid.shape[i] < 1) throw std::runtime_error("shape entries must be positive");
+            out.lower[i] = grid.at("lower").at(i).get<double>();
+            out.upper[i] = grid.at("upper").at(i).get<double>();
+            out.shape[i] = grid.at("shape").at(i).get<int>();
+            if (out.shape[i] < 1) throw std::runtime_error("shape entries must be positive");
         }
         if (grid.at("shape").size() != 3) throw std::runtime_error("shape must have 3 entries");
-        info.grid.voxel_size = grid.at("voxel_size").get<double>();
+        out.voxel_size = grid.at("voxel_size").get<double>();
     } catch (const std::exception& e) {
-        fail(Error::kContract, source + ": metadata 'grid' must hold lower, upper, voxel_size and shape [X, Y, Z] (" +
-                                   e.what() + ")");
+        fail(Error::kContract, source + ": metadata '" + key::kGrid +
+                                   "' must hold lower, upper, voxel_size and shape [X, Y, Z] (" + e.what() + ")");
     }
-    info.cameras = strings(require(meta, "cameras", source), "cameras", source);
-    if (info.cameras.size() != kCameras ||
-        std::set<std::string>(info.cameras.begin(), info.cameras.end()).size() != kCameras)
-        fail(Error::kContract, source + ": metadata 'cameras' must be 6 distinct names");
-    const json& tau = require(meta, "threshold", source);
-    if (!tau.is_number()) fail(Error::kContract, source + ": metadata 'threshold' must be a number");
-    info.threshold = tau.get<double>();
-    const json& input_size = require(meta, "input_size", source);
-    if (!input_size.is_array() || input_size.size() != 2 || !input_size[0].is_number_integer() ||
-        !input_size[1].is_number_integer())
-        fail(Error::kContract, source + ": metadata 'input_size' must be [H, W]");
-    info.input_size = {input_size[0].get<int>(), input_size[1].get<int>()};
-    const json& calib = require(meta, "default_calibration", source);
+    return out;
+}
+
+std::vector<std::string> parse_cameras(const json& meta, const std::string& source) {
+    auto cameras = strings(require(meta, key::kCameras, source), key::kCameras, source);
+    if (cameras.size() != std::size_t(contract::kNumCameras) ||
+        std::set<std::string>(cameras.begin(), cameras.end()).size() != cameras.size())
+        fail(Error::kContract, source + ": metadata '" + key::kCameras + "' must be " +
+                                   std::to_string(contract::kNumCameras) + " distinct names");
+    return cameras;
+}
+
+double parse_threshold(const json& meta, const std::string& source) {
+    const json& tau = require(meta, key::kThreshold, source);
+    if (!tau.is_number()) fail(Error::kContract, source + ": metadata '" + key::kThreshold + "' must be a number");
+    return tau.get<double>();
+}
+
+std::array<int, 2> parse_input_size(const json& meta, const std::string& source) {
+    const json& size = require(meta, key::kInputSize, source);
+    if (!size.is_array() || size.size() != 2 || !size[0].is_number_integer() || !size[1].is_number_integer())
+        fail(Error::kContract, source + ": metadata '" + key::kInputSize + "' must be [H, W]");
+    return {size[0].get<int>(), size[1].get<int>()};
+}
+
+// The default calibration, validated like any calibration for the model's cameras (its errors are kContract).
+Calibration parse_default_calibration(const json& meta, const std::vector<std::string>& cameras,
+                                      const std::string& source) {
+    const json& calib = require(meta, key::kDefaultCalibration, source);
+    const std::string where = source + ": " + key::kDefaultCalibration;
     if (!calib.is_object() || !calib.contains("image_size"))
-        fail(Error::kContract, source + ": default_calibration must be calibration JSON with image_size [w, h]");
+        fail(Error::kContract, where + " must be calibration JSON with image_size [w, h]");
     try {
-        info.default_calibration = calibration_from_json(calib, info.cameras, source + ": default_calibration");
+        return calibration_from_json(calib, cameras, where);
     } catch (const Error& e) {
         fail(Error::kContract, e.what());
     }
-    if (meta.contains("preset") && meta["preset"].is_string()) info.preset = meta["preset"].get<std::string>();
-    if (meta.contains("occflownet_version") && meta["occflownet_version"].is_string())
-        info.version = meta["occflownet_version"].get<std::string>();
+}
+
+std::string optional_string(const json& meta, const char* k) {
+    auto it = meta.find(k);
+    return it != meta.end() && it->is_string() ? it->get<std::string>() : std::string();
+}
+
+// metadata_props -> ModelInfo, every key checked in turn; Error(kContract) naming `source` and the key.
+ModelInfo parse_metadata(const std::vector<std::pair<std::string, std::string>>& props, const std::string& source) {
+    const json meta = decode_metadata(props);
+    check_required_keys(meta, source);
+    check_contract_version(meta, source);
+    ModelInfo info;
+    info.path = source;
+    info.contract = contract::kVersion;
+    info.classes = strings(require(meta, key::kClasses, source), key::kClasses, source);
+    info.free_index = parse_free_index(meta, info.classes.size(), source);
+    info.class_colors = parse_class_colors(meta, info.classes.size(), source);
+    info.grid = parse_grid(meta, source);
+    info.cameras = parse_cameras(meta, source);
+    info.threshold = parse_threshold(meta, source);
+    info.input_size = parse_input_size(meta, source);
+    info.default_calibration = parse_default_calibration(meta, info.cameras, source);
+    info.preset = optional_string(meta, key::kPreset);
+    info.version = optional_string(meta, key::kOccflownetVersion);
     return info;
 }
 
 // ------------------------------------------------------------------------------------------- session I/O
-const char* kInputs[3] = {"images", "intrinsics", "cam2ego"};
-const char* kOutputs[2] = {"occupancy", "density"};
+static_assert(contract::kImages.element_type == ONNX_TENSOR_ELEMENT_DATA_TYPE_UINT8 &&
+                  contract::kIntrinsics.element_type == ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT &&
+                  contract::kCam2ego.element_type == ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT &&
+                  contract::kOccupancy.element_type == ONNX_TENSOR_ELEMENT_DATA_TYPE_UINT8 &&
+                  contract::kDensity.element_type == ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT,
+              "run() takes uint8 images and occupancy, float intrinsics, cam2ego and density");
+constexpr int dynamic_dims(const contract::TensorSpec& spec) {  // after the batch
+    int n = 0;
+    for (std::size_t d = 1; d < spec.rank; ++d) n += spec.dims[d] < 0;
+    return n;
+}
+static_assert(dynamic_dims(contract::kImages) == 2 && contract::kImages.dims[2] < 0 && contract::kImages.dims[3] < 0 &&
+                  dynamic_dims(contract::kIntrinsics) == 0 && dynamic_dims(contract::kCam2ego) == 0,
+              "images are [B, V, H, W, 3] with H, W the only dynamic dims after the batch; the matrices are static");
+static_assert(contract::kOccupancy.rank == 4 && contract::kDensity.rank == 4, "the outputs are [B, X, Y, Z]");
 
 std::string type_name(ONNXTensorElementDataType t) {
     switch (t) {
@@ -240,45 +314,110 @@ std::string dims_text(const std::vector<std::int64_t>& dims) {
     return s + "]";
 }
 
-// Checks one side (inputs or outputs) against `want` = name -> (dtype, dims; -1 = any). Returns the dims found.
-std::vector<std::vector<std::int64_t>> check_signature(
-    Ort::Session& session, bool inputs, const std::vector<std::string>& names,
-    const std::vector<std::pair<ONNXTensorElementDataType, std::vector<std::int64_t>>>& want,
-    const std::string& source) {
+template <std::size_t N>
+std::string joined(const std::array<const char*, N>& names) {
+    std::string s;
+    for (const char* n : names) s += (s.empty() ? "" : ", ") + std::string(n);
+    return s;
+}
+
+// What one graph input or output must be: name, element type, dims (-1 = any).
+struct Want {
+    std::string name;
+    ONNXTensorElementDataType type;
+    std::vector<std::int64_t> dims;
+};
+
+Want want(const contract::TensorSpec& spec) {
+    return {spec.name, ONNXTensorElementDataType(spec.element_type),
+            std::vector<std::int64_t>(spec.dims.begin(), spec.dims.begin() + spec.rank)};
+}
+
+std::vector<Want> input_wants() {
+    std::vector<Want> out;
+    for (const auto& spec : contract::kInputs) out.push_back(want(spec));
+    return out;
+}
+
+// The outputs [B, X, Y, Z] with the grid shape the model's metadata states (run() writes grid.voxels() values).
+std::vector<Want> output_wants(const GridSpec& grid) {
+    std::vector<Want> out;
+    for (const auto& spec : contract::kOutputs) {
+        out.push_back(want(spec));
+        std::copy(grid.shape.begin(), grid.shape.end(), out.back().dims.begin() + 1);
+    }
+    return out;
+}
+
+std::vector<std::string> graph_names(Ort::Session& session, bool inputs) {
     Ort::AllocatorWithDefaultOptions alloc;
     std::size_t n = inputs ? session.GetInputCount() : session.GetOutputCount();
-    std::vector<std::string> found;
+    std::vector<std::string> names;
     for (std::size_t i = 0; i < n; ++i)
-        found.push_back(inputs ? session.GetInputNameAllocated(i, alloc).get()
+        names.push_back(inputs ? session.GetInputNameAllocated(i, alloc).get()
                                : session.GetOutputNameAllocated(i, alloc).get());
+    return names;
+}
+
+// Checks one side (inputs or outputs) against `wants`, in the contract's order. Returns the dims found.
+std::vector<std::vector<std::int64_t>> check_signature(Ort::Session& session, bool inputs,
+                                                       const std::vector<Want>& wants, const std::string& source) {
+    const std::vector<std::string> found = graph_names(session, inputs);
     const std::string kind = inputs ? "input" : "output";
+    const std::string needs = std::string("contract ") + contract::kVersion + " needs ";
     std::vector<std::vector<std::int64_t>> dims_out;
-    for (std::size_t w = 0; w < names.size(); ++w) {
-        auto it = std::find(found.begin(), found.end(), names[w]);
+    for (const Want& w : wants) {
+        auto it = std::find(found.begin(), found.end(), w.name);
         if (it == found.end()) {
             std::string have;
             for (auto& f : found) have += (have.empty() ? "" : ", ") + f;
-            fail(Error::kContract, source + ": model has no " + kind + " '" + names[w] + "' (has " + have +
-                                       "); contract v1 needs inputs images, intrinsics, cam2ego and outputs "
-                                       "occupancy, density");
+            fail(Error::kContract, source + ": model has no " + kind + " '" + w.name + "' (has " + have + "); " +
+                                       needs + "inputs " + joined(contract::kInputNames) + " and outputs " +
+                                       joined(contract::kOutputNames));
         }
         std::size_t idx = std::size_t(it - found.begin());
         Ort::TypeInfo type = inputs ? session.GetInputTypeInfo(idx) : session.GetOutputTypeInfo(idx);
         if (type.GetONNXType() != ONNX_TYPE_TENSOR)
-            fail(Error::kContract, source + ": " + kind + " '" + names[w] + "' is not a tensor");
+            fail(Error::kContract, source + ": " + kind + " '" + w.name + "' is not a tensor");
         auto tensor = type.GetTensorTypeAndShapeInfo();
         auto dims = tensor.GetShape();
-        const auto& [dtype, wdims] = want[w];
-        bool ok = tensor.GetElementType() == dtype && dims.size() == wdims.size();
+        bool ok = tensor.GetElementType() == w.type && dims.size() == w.dims.size();
         for (std::size_t d = 0; ok && d < dims.size(); ++d)
-            if (wdims[d] >= 0 && dims[d] >= 0 && dims[d] != wdims[d]) ok = false;
+            if (w.dims[d] >= 0 && dims[d] >= 0 && dims[d] != w.dims[d]) ok = false;
         if (!ok)
-            fail(Error::kContract, source + ": " + kind + " '" + names[w] + "' is " +
-                                       type_name(tensor.GetElementType()) + " " + dims_text(dims) +
-                                       ", contract v1 needs " + type_name(dtype) + " " + dims_text(wdims));
+            fail(Error::kContract, source + ": " + kind + " '" + w.name + "' is " +
+                                       type_name(tensor.GetElementType()) + " " + dims_text(dims) + ", " + needs +
+                                       type_name(w.type) + " " + dims_text(w.dims));
         dims_out.push_back(dims);
     }
     return dims_out;
+}
+
+// One frame's shape of a tensor: the batch 1, then `dims` (its own rank); count = the number of elements.
+struct FrameShape {
+    std::array<std::int64_t, contract::kMaxRank> dims{};
+    std::size_t rank = 0, count = 1;
+};
+
+// `spec` for one frame: batch 1, its static dims, and its dynamic ones (the images' H, W) from `fill` in order.
+FrameShape frame_shape(const contract::TensorSpec& spec, std::array<std::int64_t, 2> fill = {}) {
+    FrameShape s;
+    s.rank = spec.rank;
+    std::size_t next = 0;
+    for (std::size_t d = 0; d < spec.rank; ++d) {
+        s.dims[d] = d == 0 ? 1 : spec.dims[d] >= 0 ? spec.dims[d] : fill[next++];
+        s.count *= std::size_t(s.dims[d]);
+    }
+    return s;
+}
+
+// An output for one frame: [1, X, Y, Z] of the model's grid.
+FrameShape grid_shape(const GridSpec& grid) {
+    FrameShape s;
+    s.rank = 4;
+    s.dims = {1, grid.shape[0], grid.shape[1], grid.shape[2]};
+    s.count = grid.voxels();
+    return s;
 }
 
 std::string provider_list() {
@@ -298,6 +437,84 @@ const OrtApi* init_api() {
                                   " is older than the headers this program was built with (API version " +
                                   std::to_string(ORT_API_VERSION) + ")");
     return api;
+}
+
+// ------------------------------------------------------------------------------------------- opening a model
+void check_readable(const std::string& model_path) {
+    std::ifstream probe(model_path, std::ios::binary);
+    if (!probe) fail(Error::kIO, "model file not found or unreadable: " + model_path);
+}
+
+void append_cuda(Ort::SessionOptions& so, const RunnerOptions& options) {
+    const OrtApi& api = Ort::GetApi();
+    OrtCUDAProviderOptionsV2* cuda = nullptr;
+    Ort::ThrowOnError(api.CreateCUDAProviderOptions(&cuda));
+    std::unique_ptr<OrtCUDAProviderOptionsV2, void (*)(OrtCUDAProviderOptionsV2*)> guard(
+        cuda, api.ReleaseCUDAProviderOptions);
+    std::vector<std::string> keys{"device_id"}, values{std::to_string(options.device_id)};
+    for (auto& [k, v] : options.provider_options) keys.push_back(k), values.push_back(v);
+    std::vector<const char*> kp, vp;
+    for (std::size_t i = 0; i < keys.size(); ++i) kp.push_back(keys[i].c_str()), vp.push_back(values[i].c_str());
+    Ort::ThrowOnError(api.UpdateCUDAProviderOptions(cuda, kp.data(), vp.data(), kp.size()));
+    so.AppendExecutionProvider_CUDA_V2(*cuda);
+}
+
+// "cpu" (or empty): nothing to add; "cuda": CUDA with device_id; else onnxruntime's generic provider by name.
+void append_execution_provider(Ort::SessionOptions& so, const RunnerOptions& options) {
+    std::string ep = options.execution_provider;
+    std::transform(ep.begin(), ep.end(), ep.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });
+    try {
+        if (ep == "cuda") {
+            append_cuda(so, options);
+        } else if (!ep.empty() && ep != "cpu") {
+            std::unordered_map<std::string, std::string> opts(options.provider_options.begin(),
+                                                              options.provider_options.end());
+            so.AppendExecutionProvider(options.execution_provider, opts);
+        }
+    } catch (const Ort::Exception& e) {
+        fail(Error::kRuntime, "execution provider '" + options.execution_provider +
+                                  "' is not usable with this onnxruntime (" + e.what() +
+                                  "; available: " + provider_list() + ")");
+    }
+}
+
+Ort::SessionOptions session_options(const RunnerOptions& options) {
+    Ort::SessionOptions so;
+    so.SetIntraOpNumThreads(std::max(0, options.intra_op_threads));
+    so.SetInterOpNumThreads(1);
+    so.SetExecutionMode(ExecutionMode::ORT_SEQUENTIAL);
+    so.SetGraphOptimizationLevel(GraphOptimizationLevel::ORT_ENABLE_ALL);
+    so.AddConfigEntry("session.intra_op.allow_spinning", options.allow_spinning ? "1" : "0");
+    append_execution_provider(so, options);
+    return so;
+}
+
+Ort::Session open_session(const Ort::Env& env, const std::string& model_path, const Ort::SessionOptions& so) {
+    try {
+        return Ort::Session(env, model_path.c_str(), so);
+    } catch (const Ort::Exception& e) {
+        fail(Error::kContract, model_path + ": onnxruntime cannot load this model (" + e.what() + ")");
+    }
+}
+
+std::vector<std::pair<std::string, std::string>> metadata_props(Ort::Session& session) {
+    Ort::AllocatorWithDefaultOptions alloc;
+    Ort::ModelMetadata meta = session.GetModelMetadata();
+    std::vector<std::pair<std::string, std::string>> props;
+    for (auto& key : meta.GetCustomMetadataMapKeysAllocated(alloc))
+        props.emplace_back(key.get(), meta.LookupCustomMetadataMapAllocated(key.get(), alloc).get());
+    return props;
+}
+
+// The session against contract v1 -> its ModelInfo: inputs, then metadata, then the outputs (whose grid is the
+// metadata's); fixed_image_size from the images input when the graph pins H and W.
+ModelInfo check_model(Ort::Session& session, const std::string& source) {
+    const auto in_dims = check_signature(session, true, input_wants(), source);
+    ModelInfo info = parse_metadata(metadata_props(session), source);
+    check_signature(session, false, output_wants(info.grid), source);
+    const auto& img = in_dims[0];
+    if (img[2] > 0 && img[3] > 0) info.fixed_image_size = {int(img[2]), int(img[3])};
+    return info;
 }
 
 }  // namespace
@@ -361,67 +578,12 @@ struct Runner::Impl {
 
 Runner::Runner(const std::string& model_path, const RunnerOptions& options) {
     init_api();  // first: even empty Ort:: handles call the API when destroyed
-    {
-        std::ifstream probe(model_path, std::ios::binary);
-        if (!probe) fail(Error::kIO, "model file not found or unreadable: " + model_path);
-    }
+    check_readable(model_path);
     impl_ = std::make_unique<Impl>();
     try {
         impl_->env = Ort::Env(ORT_LOGGING_LEVEL_ERROR, "occflownet");
-        Ort::SessionOptions so;
-        so.SetIntraOpNumThreads(std::max(0, options.intra_op_threads));
-        so.SetInterOpNumThreads(1);
-        so.SetExecutionMode(ExecutionMode::ORT_SEQUENTIAL);
-        so.SetGraphOptimizationLevel(GraphOptimizationLevel::ORT_ENABLE_ALL);
-        so.AddConfigEntry("session.intra_op.allow_spinning", options.allow_spinning ? "1" : "0");
-        std::string ep = options.execution_provider;
-        std::transform(ep.begin(), ep.end(), ep.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });
-        try {
-            if (ep == "cuda") {
-                const OrtApi& api = Ort::GetApi();
-                OrtCUDAProviderOptionsV2* cuda = nullptr;
-                Ort::ThrowOnError(api.CreateCUDAProviderOptions(&cuda));
-                std::unique_ptr<OrtCUDAProviderOptionsV2, void (*)(OrtCUDAProviderOptionsV2*)> guard(
-                    cuda, api.ReleaseCUDAProviderOptions);
-                std::vector<std::string> keys{"device_id"}, values{std::to_string(options.device_id)};
-                for (auto& [k, v] : options.provider_options) keys.push_back(k), values.push_back(v);
-                std::vector<const char*> kp, vp;
-                for (std::size_t i = 0; i < keys.size(); ++i) kp.push_back(keys[i].c_str()), vp.push_back(values[i].c_str());
-                Ort::ThrowOnError(api.UpdateCUDAProviderOptions(cuda, kp.data(), vp.data(), kp.size()));
-                so.AppendExecutionProvider_CUDA_V2(*cuda);
-            } else if (!ep.empty() && ep != "cpu") {
-                std::unordered_map<std::string, std::string> opts(options.provider_options.begin(),
-                                                                  options.provider_options.end());
-                so.AppendExecutionProvider(options.execution_provider, opts);
-            }
-        } catch (const Ort::Exception& e) {
-            fail(Error::kRuntime, "execution provider '" + options.execution_provider +
-                                      "' is not usable with this onnxruntime (" + e.what() +
-                                      "; available: " + provider_list() + ")");
-        }
-        try {
-            impl_->session = Ort::Session(impl_->env, model_path.c_str(), so);
-        } catch (const Ort::Exception& e) {
-            fail(Error::kContract, model_path + ": onnxruntime cannot load this model (" + e.what() + ")");
-        }
-        auto in_dims = check_signature(impl_->session, true, {"images", "intrinsics", "cam2ego"},
-                                       {{ONNX_TENSOR_ELEMENT_DATA_TYPE_UINT8, {-1, kCameras, -1, -1, 3}},
-                                        {ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT, {-1, kCameras, 3, 3}},
-                                        {ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT, {-1, kCameras, 4, 4}}},
-                                       model_path);
-        Ort::AllocatorWithDefaultOptions alloc;
-        Ort::ModelMetadata meta = impl_->session.GetModelMetadata();
-        std::vector<std::pair<std::string, std::string>> props;
-        for (auto& key : meta.GetCustomMetadataMapKeysAllocated(alloc))
-            props.emplace_back(key.get(), meta.LookupCustomMetadataMapAllocated(key.get(), alloc).get());
-        impl_->info = parse_metadata(props, model_path);
-        const auto& g = impl_->info.grid.shape;
-        check_signature(impl_->session, false, {"occupancy", "density"},
-                        {{ONNX_TENSOR_ELEMENT_DATA_TYPE_UINT8, {-1, g[0], g[1], g[2]}},
-                         {ONNX_TENSOR_ELEMENT_DATA_TYPE_FLOAT, {-1, g[0], g[1], g[2]}}},
-                        model_path);
-        const auto& img = in_dims[0];
-        if (img[2] > 0 && img[3] > 0) impl_->info.fixed_image_size = {int(img[2]), int(img[3])};
+        impl_->session = open_session(impl_->env, model_path, session_options(options));
+        impl_->info = check_model(impl_->session, model_path);
         impl_->memory = Ort::MemoryInfo::CreateCpu(OrtArenaAllocator, OrtMemTypeDefault);
     } catch (const Ort::Exception& e) {
         fail(Error::kRuntime, model_path + ": onnxruntime: " + e.what());
@@ -456,24 +618,24 @@ void Runner::run(const std::uint8_t* images, int height, int width, const float*
         if (!same) {
             b.inputs.clear();
             b.outputs.clear();
-            const auto& g = impl_->info.grid.shape;
-            const std::int64_t img_shape[5] = {1, kCameras, height, width, 3}, k_shape[4] = {1, kCameras, 3, 3},
-                               t_shape[4] = {1, kCameras, 4, 4}, g_shape[4] = {1, g[0], g[1], g[2]};
-            const std::size_t n_img = std::size_t(kCameras) * height * width * 3, n_vox = impl_->info.grid.voxels();
+            const FrameShape img = frame_shape(contract::kImages, {height, width}),
+                             K = frame_shape(contract::kIntrinsics), T = frame_shape(contract::kCam2ego),
+                             G = grid_shape(impl_->info.grid);
             const OrtMemoryInfo* mem = impl_->memory;
-            b.inputs.push_back(Ort::Value::CreateTensor<std::uint8_t>(mem, const_cast<std::uint8_t*>(images), n_img,
-                                                                      img_shape, 5));
-            b.inputs.push_back(Ort::Value::CreateTensor<float>(mem, const_cast<float*>(intrinsics), kCameras * 9,
-                                                               k_shape, 4));
-            b.inputs.push_back(Ort::Value::CreateTensor<float>(mem, const_cast<float*>(cam2ego), kCameras * 16,
-                                                               t_shape, 4));
-            b.outputs.push_back(Ort::Value::CreateTensor<std::uint8_t>(mem, occupancy, n_vox, g_shape, 4));
-            if (density) b.outputs.push_back(Ort::Value::CreateTensor<float>(mem, density, n_vox, g_shape, 4));
+            b.inputs.push_back(Ort::Value::CreateTensor<std::uint8_t>(mem, const_cast<std::uint8_t*>(images), img.count,
+                                                                      img.dims.data(), img.rank));
+            b.inputs.push_back(Ort::Value::CreateTensor<float>(mem, const_cast<float*>(intrinsics), K.count,
+                                                               K.dims.data(), K.rank));
+            b.inputs.push_back(Ort::Value::CreateTensor<float>(mem, const_cast<float*>(cam2ego), T.count,
+                                                               T.dims.data(), T.rank));
+            b.outputs.push_back(Ort::Value::CreateTensor<std::uint8_t>(mem, occupancy, G.count, G.dims.data(), G.rank));
+            if (density)
+                b.outputs.push_back(Ort::Value::CreateTensor<float>(mem, density, G.count, G.dims.data(), G.rank));
             std::copy(ptrs, ptrs + 5, b.ptr);
             b.height = height, b.width = width;
         }
-        impl_->session.Run(Ort::RunOptions{nullptr}, kInputs, b.inputs.data(), 3, kOutputs, b.outputs.data(),
-                           b.outputs.size());
+        impl_->session.Run(Ort::RunOptions{nullptr}, contract::kInputNames.data(), b.inputs.data(), b.inputs.size(),
+                           contract::kOutputNames.data(), b.outputs.data(), b.outputs.size());
     } catch (const Ort::Exception& e) {
         b = Impl::Bound{};  // do not reuse tensors of a failed call
         fail(Error::kRuntime, impl_->info.path + ": inference failed: " + e.what());

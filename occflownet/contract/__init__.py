@@ -11,6 +11,8 @@ Modules: :mod:`~occflownet.contract.tensors` (the tensors, signature check, feed
 window, reduced-scale JPEG decoding),
 :mod:`~occflownet.contract.session` (the onnxruntime session). Their
 public names are re-exported here: ``from occflownet import contract; contract.create_session(...)``.
+:mod:`~occflownet.contract.cpp_header` renders the contract as the C++ header of ``embed/``
+(``python -m occflownet.contract.cpp_header``); it is not imported here, so that ``-m`` runs it cleanly.
 
 Tensors (B = batch, V = 6 cameras in ``CAMERAS`` order, H × W any image size):
 

@@ -12,8 +12,12 @@
 //   metadata_props (JSON values): classes, free_index, grid {lower, upper, voxel_size, shape}, cameras,
 //            class_colors, threshold, input_size [H, W], default_calibration (calibration JSON with image_size),
 //            onnx_contract == "v1"; optional preset, occflownet_version.
-// All arrays are C order (row-major), batch 1 in this API.
+// All arrays are C order (row-major), batch 1 in this API. The names, dtypes, ranks, fixed dimensions, metadata keys
+// and calibration tolerances are the constants of occflownet/contract_v1.hpp (namespace occflownet::contract),
+// generated from the Python definitions in occflownet/contract/ (`python -m occflownet.contract.cpp_header`).
 #pragma once
+
+#include "occflownet/contract_v1.hpp"
 
 #include <array>
 #include <cstddef>
@@ -26,9 +30,10 @@
 
 namespace occflownet {
 
-constexpr int kCameras = 6;
-constexpr double kAspectTolerance = 0.01;      // relative aspect-ratio difference allowed when rescaling intrinsics
-constexpr double kOrthonormalTolerance = 1e-3; // max |R^T R - I| of a cam2ego rotation
+constexpr int kCameras = contract::kNumCameras;
+constexpr double kAspectTolerance = contract::kAspectTolerance;  // relative aspect-ratio difference allowed when
+                                                                 // rescaling intrinsics
+constexpr double kOrthonormalTolerance = contract::kOrthonormalTolerance;  // max |R^T R - I| of a cam2ego rotation
 
 // Every failure of this library is an Error (never an abort); what() names the file, camera or field.
 class Error : public std::runtime_error {
