@@ -7,6 +7,11 @@ options (``int``/``float``/``str`` with the annotation's type, ``bool`` as ``--x
 (the quickstart prints the ``occflownet train`` command of the run it starts). Nothing here knows a particular
 configuration; ``commands/train.py`` and ``commands/quickstart.py`` call these with ``TrainConfig`` and
 ``QuickstartConfig``.
+
+The same for the fields of a pydantic settings model (``commands/serve.py`` with ``serve.settings.ServeSettings``):
+:func:`add_model_options` and :func:`model_kwargs`. Those options default to "not given", so that what the command
+line leaves unset comes from where else the model reads (the environment, ``.env``), then its default; the help
+shows that default. The model is read through its ``model_fields`` only: pydantic is not imported here.
 """
 from __future__ import annotations
 
@@ -14,7 +19,7 @@ import argparse
 import dataclasses
 import types
 import typing
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 
 def option(default, help: str, *, choices: Sequence | None = None, flag: str | None = None):
@@ -30,11 +35,16 @@ def _flag(f: dataclasses.Field) -> str:
 
 def _value_type(cls, f: dataclasses.Field) -> type:
     """The annotation's type with ``None`` left out: ``int | None`` → int."""
-    hint = typing.get_type_hints(cls)[f.name]
+    return _plain_type(typing.get_type_hints(cls)[f.name], f"{cls.__name__}.{f.name}")
+
+
+def _plain_type(hint, what: str) -> type:
+    """``hint`` with ``None`` left out (``int | None`` → int): bool, int, float or str, else a TypeError naming
+    ``what``."""
     if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
         hint = next(a for a in typing.get_args(hint) if a is not type(None))
     if hint not in (bool, int, float, str):
-        raise TypeError(f"{cls.__name__}.{f.name}: no command-line option for type {hint!r}")
+        raise TypeError(f"{what}: no command-line option for type {hint!r}")
     return hint
 
 
@@ -84,3 +94,38 @@ def config_argv(cfg, baseline, *, always: Sequence[str] = ()) -> list[str]:
         elif value is not None:
             argv += [_flag(f), repr(value) if isinstance(value, float) else str(value)]
     return argv
+
+
+def add_model_options(parser: argparse.ArgumentParser, cls, *, skip: Sequence[str] = (),
+                      env: Callable[[str], str] | None = None) -> None:
+    """One option per field of the pydantic model ``cls`` (but those in ``skip``), each defaulting to None = not
+    given: ``--field-name`` (or ``json_schema_extra={"flag": name}``), the field's description as help with its
+    default (and, given ``env``, the variable ``env(field)`` that an unset option falls back to), the annotation's
+    type (``X | None`` → X; a ``list`` field takes one string, which the model's validator splits), a ``bool`` as
+    ``--x/--no-x``. A default of None or "" is not shown: the description says what it means."""
+    for name, info in cls.model_fields.items():
+        if name in skip:
+            continue
+        extra = info.json_schema_extra if isinstance(info.json_schema_extra, dict) else {}
+        flag = "--" + (extra.get("flag") or name.replace("_", "-"))
+        listed = typing.get_origin(info.annotation) is list
+        kind = str if listed else _plain_type(info.annotation, f"{cls.__name__}.{name}")
+        notes = []
+        if info.default not in (None, ""):
+            default = info.default
+            shown = _on_off(default) if kind is bool else ",".join(default) if listed else default
+            notes.append(f"default: {shown}")
+        if env is not None:
+            notes.append(f"${env(name)}")
+        help = info.description + (f" ({'; '.join(notes)})" if notes else "")
+        if kind is bool:
+            parser.add_argument(flag, dest=name, action=argparse.BooleanOptionalAction, default=None, help=help)
+        else:
+            parser.add_argument(flag, dest=name, type=kind, default=None, help=help,
+                                metavar=flag[2:].upper().replace("-", "_"))
+
+
+def model_kwargs(args: argparse.Namespace, cls, *, skip: Sequence[str] = ()) -> dict:
+    """The options of :func:`add_model_options` that were given, as keyword arguments of ``cls``."""
+    return {name: getattr(args, name) for name in cls.model_fields
+            if name not in skip and getattr(args, name) is not None}

@@ -58,20 +58,28 @@ class ServeSettings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, env_file=".env", env_ignore_empty=True, extra="ignore",
                                       populate_by_name=True, frozen=True)
 
-    model_path: str = Field("", validation_alias=MODEL_ENV, description="contract-v1 ONNX file")
+    # The descriptions are the help of `occflownet serve`'s options (occflownet/options.py add_model_options), "flag"
+    # names the option where it is not the field's name; every field but api_key is an option (max_body_bytes in MiB,
+    # as --max-body-mb).
+    model_path: str = Field("", validation_alias=MODEL_ENV, description="contract-v1 ONNX file",
+                            json_schema_extra={"flag": "model"})
     api_key: str | None = Field(None, repr=False, description="bearer key for every route but the probes and the "
                                 "page's static files (blank: none)")
-    max_body_bytes: int = Field(DEFAULT_MAX_BODY_BYTES, ge=1, description="whole request body, bytes")
-    max_image_pixels: int = Field(DEFAULT_MAX_IMAGE_PIXELS, ge=1, description="pixels per image, from its header")
-    intra_op_threads: int | None = Field(None, ge=1, description="onnxruntime intra-op threads per inference")
-    max_inflight: int | None = Field(None, ge=1, description="requests computing at once per worker")
-    max_queue: int = Field(DEFAULT_MAX_QUEUE, ge=0, description="requests admitted beyond those computing")
-    workers: int = Field(1, ge=1, description="uvicorn worker processes (used for the defaults)")
+    max_body_bytes: int = Field(DEFAULT_MAX_BODY_BYTES, ge=1, description="request body limit")
+    max_image_pixels: int = Field(DEFAULT_MAX_IMAGE_PIXELS, ge=1, description="pixels per image, checked from its "
+                                  "header before decoding")
+    intra_op_threads: int | None = Field(None, ge=1, description="onnxruntime intra-op threads per inference; "
+                                         "unset: cores // workers", json_schema_extra={"flag": "threads"})
+    max_inflight: int | None = Field(None, ge=1, description="requests computing at once per worker; unset: "
+                                     "max(1, cores // workers // threads)")
+    max_queue: int = Field(DEFAULT_MAX_QUEUE, ge=0, description="requests admitted beyond those computing; more get "
+                           "503 + Retry-After")
+    workers: int = Field(1, ge=1, description="uvicorn worker processes, each with its own model session")
     ort_spin: bool = Field(False, description="onnxruntime threads spin between runs")
     providers: Annotated[list[str], NoDecode] = Field(["CPUExecutionProvider"], min_length=1,
                                                      description="onnxruntime execution providers, comma-separated")
     warmup: bool = Field(True, description="one inference before /readyz turns ready")
-    ui: bool = Field(True, description="the browser page at /ui")
+    ui: bool = Field(True, description="the browser page at /ui; off: the API only")
 
     @field_validator("providers", mode="before")
     @classmethod

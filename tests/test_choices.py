@@ -23,9 +23,6 @@ REPO = Path(__file__).resolve().parents[1]
 SETS = {"PRESET_NAMES": ("tiny", "base", "paper"), "HEAD_INITS": ("prior", "official"),
         "SUPERVISION_MODES": ("2d", "3d", "2d+3d"), "FLOW_MOVERS": ("idw", "nearest"),
         "SIGMA_READINGS": ("density", "opacity"), "RENDER_SEMANTICS": ("mixture", "normalized")}
-# The loss terms are chosen from the mode in train/losses.py, which the loss-term restructuring of issue 21
-# rewrites; its mode tests `cfg.mode in ("2d", "2d+3d")` stay until then.
-PENDING = {"occflownet/train/losses.py"}
 
 
 def test_the_sets_of_choices():
@@ -38,11 +35,9 @@ def test_the_sets_of_choices():
 def test_configs_and_checks_read_the_one_definition():
     from occflownet.model import presets
     from occflownet.render import occupancy_flow
-    from occflownet.train import losses
 
     assert tuple(presets.PRESETS) == PRESET_NAMES == tuple(PRESET_RECIPES)
     assert presets.HEAD_INITS is HEAD_INITS and occupancy_flow.MOVERS is FLOW_MOVERS
-    assert losses.MODES is SUPERVISION_MODES
     for bad, message in (({"flow_mover": "bilinear"}, "flow_mover must be one of"),
                          ({"head_init": "zeros"}, "head_init must be one of"),
                          ({"supervision": "4d"}, "supervision must be one of"),
@@ -78,7 +73,7 @@ def test_no_second_spelling_of_a_set_of_choices():
     spelled = {name: set(values) for name, values in SETS.items()}
     hits = []
     for rel, path in _sources():
-        if rel == "occflownet/choices.py" or rel in PENDING:
+        if rel == "occflownet/choices.py":
             continue
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, (ast.Tuple, ast.List, ast.Set)) and len(node.elts) >= 2 \

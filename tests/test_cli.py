@@ -24,3 +24,14 @@ def test_help_runs_without_the_training_extras():
     code = ("import sys; from occflownet.cli import build_parser; build_parser().format_help(); "
             "bad = [m for m in ('torch', 'scipy', 'numba') if m in sys.modules]; assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_the_command_line_starts_without_the_serve_extra():
+    """A training install (no pydantic-settings): every verb parses; `serve` says which extra it needs."""
+    code = ("import sys; sys.modules['pydantic_settings'] = None; from occflownet.cli import build_parser, main; "
+            "p = build_parser(); p.parse_args(['train', '--dataroot', 'd', '--out', 'o']); "
+            "sub = next(a for a in p._actions if a.dest == 'verb').choices['serve']; print(sub.format_help()); "
+            "sys.exit(main(['serve']))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 2 and "needs the serve extra" in res.stderr, res.stderr
+    assert "needs the serve extra" in res.stdout

@@ -341,6 +341,68 @@ def test_every_setting_is_documented():
         assert info.description and f"`{env_name(name)}" in doc, name
 
 
+def _serve_args(*argv: str):
+    from occflownet.cli import build_parser
+
+    return build_parser().parse_args(["serve", *argv])
+
+
+def _clean_environment(monkeypatch, tmp_path):
+    for name in ServeSettings.model_fields:
+        monkeypatch.delenv(env_name(name), raising=False)
+    monkeypatch.chdir(tmp_path)                                 # no .env of the repository
+
+
+def test_every_setting_but_the_api_key_is_reachable_from_the_command_line(monkeypatch, tmp_path):
+    from occflownet.commands.serve import _settings
+
+    _clean_environment(monkeypatch, tmp_path)
+    given = {"model_path": "m.onnx", "max_body_bytes": 3 * 1024 * 1024, "max_image_pixels": 640 * 480,
+             "intra_op_threads": 3, "max_inflight": 2, "max_queue": 0, "workers": 2, "ort_spin": True,
+             "providers": ["A", "B"], "warmup": False, "ui": False}
+    assert set(given) == set(ServeSettings.model_fields) - {"api_key"}
+    assert all(value != ServeSettings.model_fields[name].default for name, value in given.items())
+    args = _serve_args("--model", "m.onnx", "--max-body-mb", "3", "--max-image-pixels", "307200", "--threads", "3",
+                       "--max-inflight", "2", "--max-queue", "0", "--workers", "2", "--ort-spin", "--providers",
+                       "A,B", "--no-warmup", "--no-ui")
+    settings = _settings(args)
+    assert {name: getattr(settings, name) for name in given} == given
+    with pytest.raises(SystemExit):                             # the key: from the environment only
+        _serve_args("--api-key", "secret")
+
+
+def test_serve_options_left_unset_fall_back_to_the_environment_then_the_defaults(monkeypatch, tmp_path):
+    from occflownet.commands.serve import _settings
+
+    _clean_environment(monkeypatch, tmp_path)
+    assert _settings(_serve_args()) == ServeSettings()
+    assert _settings(_serve_args()).max_queue == DEFAULT_MAX_QUEUE
+    monkeypatch.setenv("OCCFLOWNET_MAX_QUEUE", "9")
+    monkeypatch.setenv("OCCFLOWNET_WARMUP", "0")
+    assert (_settings(_serve_args()).max_queue, _settings(_serve_args()).warmup) == (9, False)
+    assert (_settings(_serve_args("--max-queue", "2", "--warmup")).max_queue,
+            _settings(_serve_args("--max-queue", "2", "--warmup")).warmup) == (2, True)   # the command line wins
+
+
+def test_the_serve_help_shows_each_settings_default_and_variable():
+    from occflownet.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "verb").choices["serve"]
+    helps = {a.dest: a.help for a in sub._actions}
+    helps["max_body_bytes"] = helps.pop("max_body_mb")
+    for name, info in ServeSettings.model_fields.items():
+        if name == "api_key":
+            assert name not in helps
+            continue
+        assert helps[name].startswith(info.description) and f"${env_name(name)}" in helps[name], name
+        if isinstance(info.default, bool):
+            assert f"(default: {'on' if info.default else 'off'};" in helps[name], name
+        elif isinstance(info.default, int):
+            shown = info.default // (1024 * 1024) if name == "max_body_bytes" else info.default
+            assert f"(default: {shown};" in helps[name], name
+    assert "(default: CPUExecutionProvider;" in helps["providers"]
+
+
 def test_fake_model_metadata_follows_the_contract():
     props = {k: json.dumps(v) for k, v in fake_metadata().items()}
     md = parse_metadata(props, "m.onnx")

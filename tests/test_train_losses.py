@@ -1,4 +1,5 @@
-"""Losses (occflownet.train.losses): hand-computed values, LiDAR depth targets, modes."""
+"""Losses (occflownet.train.losses, train.step.LossComputer): hand-computed values, LiDAR depth targets, the terms
+chosen from the configuration and the inputs computed for them."""
 from __future__ import annotations
 
 import math
@@ -9,8 +10,10 @@ import pytest
 import torch
 
 from occflownet.occ3d import NUM_CLASSES
-from occflownet.train.losses import (LossConfig, lidar_depth_loss, lidar_depth_targets, ray_losses, render_losses,
-                               total_loss, voxel_losses)
+from occflownet.train.losses import (LossTerm, free_prior_loss, free_space_loss, lidar_depth_loss, lidar_depth_targets,
+                                     loss_terms, normalized_semantics_loss, render_depth_loss, render_semantics_loss,
+                                     voxel_density_loss, voxel_semantics_loss)
+from occflownet.train.recipe import TrainConfig
 
 LOG17 = math.log(NUM_CLASSES)
 
@@ -20,30 +23,39 @@ def _rendered():
                            semantics=torch.zeros(2, NUM_CLASSES, requires_grad=True))
 
 
+def _term(cfg: TrainConfig, name: str) -> LossTerm:
+    return next(term for term in loss_terms(cfg) if term.name == name)
+
+
 def test_render_losses_by_hand_with_and_without_class_weights():
     r = _rendered()
     gt, labels = torch.tensor([2.0, 3.0]), torch.tensor([0, 1])
-    plain = render_losses(r.depth, r.semantics, gt, labels)
-    assert plain["depth"].item() == pytest.approx(0.5)
-    assert plain["semantics"].item() == pytest.approx(LOG17, rel=1e-6)
+    assert render_depth_loss(r, gt, labels).item() == pytest.approx(0.5)
+    assert render_semantics_loss(r, labels).item() == pytest.approx(LOG17, rel=1e-6)
     omega = torch.ones(NUM_CLASSES)
     omega[0], omega[1] = 2.0, 0.5
-    weighted = render_losses(r.depth, r.semantics, gt, labels, omega)
-    assert weighted["depth"].item() == pytest.approx((2.0 * 1.0 + 0.5 * 0.0) / 2)
-    assert weighted["semantics"].item() == pytest.approx(1.25 * LOG17, rel=1e-6)
-    terms = ray_losses(r, gt, labels, omega, LossConfig())
-    assert terms["render_depth"].item() == pytest.approx(0.05 * 1.0)
-    assert terms["render_semantics"].item() == pytest.approx(1.25 * LOG17, rel=1e-6)
-    terms["render_depth"].backward()
+    assert render_depth_loss(r, gt, labels, omega).item() == pytest.approx((2.0 * 1.0 + 0.5 * 0.0) / 2)
+    assert render_semantics_loss(r, labels, omega).item() == pytest.approx(1.25 * LOG17, rel=1e-6)
+    inputs = {"rendered": r, "ray_depths": gt, "ray_labels": labels, "class_weights": omega}
+    depth = _term(TrainConfig(), "render_depth")
+    assert depth.weight == 0.05 and depth.needs == ("rendered", "ray_depths", "ray_labels", "class_weights")
+    assert depth(inputs).item() == pytest.approx(0.05 * 1.0)
+    assert _term(TrainConfig(), "render_semantics")(inputs).item() == pytest.approx(1.25 * LOG17, rel=1e-6)
+    depth(inputs).backward()
     assert r.depth.grad[0].item() == pytest.approx(0.05 * 2.0 * 2 * (1.0 - 2.0) / 2)
+    assert _term(TrainConfig(render_depth_weight=0.2), "render_depth")(inputs).item() == pytest.approx(0.2)
 
 
 def test_render_losses_reject_bad_labels_and_handle_no_rays():
     r = _rendered()
     with pytest.raises(ValueError, match="labels_gt"):
-        render_losses(r.depth, r.semantics, torch.tensor([2.0, 3.0]), torch.tensor([0, 17]))
-    empty = render_losses(torch.zeros(0), torch.zeros(0, NUM_CLASSES), torch.zeros(0), torch.zeros(0, dtype=torch.long))
-    assert empty["depth"].item() == 0 and empty["semantics"].item() == 0
+        render_semantics_loss(r, torch.tensor([0, 17]))
+    with pytest.raises(ValueError, match="depth_gt"):
+        render_depth_loss(r, torch.tensor([2.0]), torch.tensor([0, 1]))
+    empty = SimpleNamespace(depth=torch.zeros(0), semantics=torch.zeros(0, NUM_CLASSES), weight_sum=torch.zeros(0))
+    none = torch.zeros(0, dtype=torch.long)
+    assert render_depth_loss(empty, torch.zeros(0), none).item() == 0
+    assert render_semantics_loss(empty, none).item() == 0 and normalized_semantics_loss(empty, none).item() == 0
 
 
 # A front camera at ego (1, 0, 1.5) looking along +x (OpenCV: x right, y down, z forward), and a rear one.
@@ -91,56 +103,58 @@ def test_voxel_losses_by_hand_with_mask():
     density = torch.tensor([0.8, 0.3]).view(1, 2, 1, 1)
     logits = torch.zeros(1, 2, 1, 1, NUM_CLASSES)
     gt = torch.tensor([4, 17], dtype=torch.uint8).view(1, 2, 1, 1)
-    terms = voxel_losses(density, logits, gt)
-    assert terms["voxel_density"].item() == pytest.approx(-(math.log(0.8) + math.log(0.7)) / 2, rel=1e-6)
-    assert terms["voxel_semantics"].item() == pytest.approx(LOG17, rel=1e-6)
+    assert voxel_density_loss(density, gt).item() == pytest.approx(-(math.log(0.8) + math.log(0.7)) / 2, rel=1e-6)
+    assert voxel_semantics_loss(logits, gt).item() == pytest.approx(LOG17, rel=1e-6)
     mask = torch.tensor([False, True]).view(1, 2, 1, 1)
-    masked = voxel_losses(density, logits, gt, mask)
-    assert masked["voxel_density"].item() == pytest.approx(-math.log(0.7), rel=1e-6)
-    assert masked["voxel_semantics"].item() == 0
-    scaled = voxel_losses(density, logits, gt, cfg=LossConfig(voxel_density_weight=2.0, voxel_semantic_weight=0.5))
-    assert scaled["voxel_density"].item() == pytest.approx(2 * terms["voxel_density"].item())
+    assert voxel_density_loss(density, gt, mask).item() == pytest.approx(-math.log(0.7), rel=1e-6)
+    assert voxel_semantics_loss(logits, gt, mask).item() == 0
     with pytest.raises(ValueError, match="semantics_gt"):
-        voxel_losses(density, logits, torch.full((1, 2, 1, 1), 18))
+        voxel_density_loss(density, torch.full((1, 2, 1, 1), 18))
+    with pytest.raises(ValueError, match="logits"):
+        voxel_semantics_loss(logits[..., :3], gt)
+    # --voxel-mask: both terms also need the mask, and apply it
+    inputs = {"density": density, "logits": logits, "occ_semantics": gt, "occ_mask": mask}
+    masked = {t.name: t for t in loss_terms(TrainConfig(supervision="3d", voxel_mask=True))}
+    assert masked["voxel_density"].needs == ("density", "occ_semantics", "occ_mask")
+    assert masked["voxel_density"](inputs).item() == pytest.approx(-math.log(0.7), rel=1e-6)
+    assert _term(TrainConfig(supervision="3d"), "voxel_density").needs == ("density", "occ_semantics")
 
 
-def test_total_loss_modes():
-    r = _rendered()
-    k, cam2ego, points = _lidar_case()
-    prob = torch.full((1, 2, 88, 10, 16), 1.0 / 88)
-    vox = dict(density=torch.tensor([0.8, 0.3]).view(1, 2, 1, 1), logits=torch.zeros(1, 2, 1, 1, NUM_CLASSES),
-               semantics_gt=torch.tensor([4, 17]).view(1, 2, 1, 1))
-    ray = dict(rendered=r, depth_gt=torch.tensor([2.0, 3.0]), labels_gt=torch.tensor([0, 1]))
-    lidar = dict(depth_prob=prob, feature_intrinsics=k, cam2ego=cam2ego, points_ego=points, depth_bin_centers=CENTERS)
-    both = total_loss(LossConfig(mode="2d+3d"), **ray, **vox, **lidar)
-    assert set(both) == {"render_depth", "render_semantics", "voxel_density", "voxel_semantics", "lidar_depth", "total"}
-    assert both["total"].item() == pytest.approx(sum(v.item() for n, v in both.items() if n != "total"))
-    assert set(total_loss(LossConfig(mode="3d"), **vox)) == {"voxel_density", "voxel_semantics", "total"}
-    assert set(total_loss(LossConfig(lidar_depth_weight=0.0), **ray, **lidar)) == {
-        "render_depth", "render_semantics", "total"}
-    with pytest.raises(ValueError, match="needs depth_gt"):
-        total_loss(LossConfig(mode="2d"), rendered=r, labels_gt=torch.tensor([0, 1]))
-    with pytest.raises(ValueError, match="needs density"):
-        total_loss(LossConfig(mode="2d+3d"), **ray)
-    with pytest.raises(ValueError, match="mode"):
-        LossConfig(mode="4d")
-    assert np.isfinite(both["total"].item())
+@pytest.mark.parametrize("overrides, names", [
+    ({}, ["render_depth", "render_semantics", "lidar_depth"]),
+    ({"supervision": "3d"}, ["voxel_density", "voxel_semantics", "lidar_depth"]),
+    ({"supervision": "3d", "depth_loss": False}, ["voxel_density", "voxel_semantics"]),
+    ({"supervision": "2d+3d", "free_space": True, "free_before_point": True, "free_prior_weight": 0.1},
+     ["render_depth", "render_semantics", "voxel_density", "voxel_semantics", "lidar_depth", "free_space",
+      "free_before", "free_prior"]),
+    ({"free_beyond_grid": True, "free_before_point": True, "free_space_weight": 0.0},
+     ["render_depth", "render_semantics", "lidar_depth"]),
+    ({"free_beyond_grid": True, "depth_loss": False}, ["render_depth", "render_semantics", "free_space"]),
+])
+def test_the_terms_are_chosen_from_the_configuration(overrides, names):
+    terms = loss_terms(TrainConfig(**overrides))
+    assert [t.name for t in terms] == names
+    weights = {t.name: t.weight for t in terms}
+    expected = {"render_depth": 0.05 if overrides.get("depth_loss", True) else 0.0, "render_semantics": 1.0,
+                "voxel_density": 1.0, "voxel_semantics": 1.0, "lidar_depth": 0.05, "free_space": 1.0,
+                "free_before": 1.0, "free_prior": 0.1}
+    assert weights == {name: expected[name] for name in names}
 
 
 def test_free_space_loss_is_zero_for_transparent_beams_and_grows_with_opacity():
-    from occflownet.train.losses import LossConfig, free_space_loss, total_loss
-
     assert float(free_space_loss(torch.zeros(5))) == 0.0
     half = float(free_space_loss(torch.full((4,), 0.5)))
     assert abs(half - np.log(2.0)) < 1e-6
     assert float(free_space_loss(torch.ones(3))) == pytest.approx(-np.log(1e-4), rel=1e-3)  # clamped, finite
     assert float(free_space_loss(torch.zeros(0))) == 0.0
     opacity = torch.full((4,), 0.5, requires_grad=True)
-    terms = total_loss(LossConfig(mode="3d", free_space_weight=2.0, lidar_depth_weight=0.0),
-                       density=torch.zeros(1, 200, 200, 16), logits=torch.zeros(1, 200, 200, 16, 17),
-                       semantics_gt=torch.full((1, 200, 200, 16), 17, dtype=torch.uint8), free_opacity=opacity)
-    assert float(terms["free_space"].detach()) == pytest.approx(2 * np.log(2.0), rel=1e-6)
-    terms["total"].backward()
+    cfg = TrainConfig(free_space=True, free_before_point=True, free_space_weight=2.0)
+    term = _term(cfg, "free_space")
+    before = _term(cfg, "free_before")
+    assert term.needs == ("free_opacity",) and before.needs == ("before_opacity",) and before.weight == 2.0
+    value = term({"free_opacity": opacity})
+    assert float(value.detach()) == pytest.approx(2 * np.log(2.0), rel=1e-6)
+    value.backward()
     assert torch.all(opacity.grad > 0)
 
 
@@ -151,33 +165,87 @@ def test_normalized_render_semantics_ignores_how_much_light_stops():
     logits[0, 3] = 4.0
     labels = torch.tensor([3])
     ce = float(torch.nn.functional.cross_entropy(logits, labels))
+    raw_term = _term(TrainConfig(), "render_semantics")
+    norm_term = _term(TrainConfig(render_semantics="normalized"), "render_semantics")
     for opacity in (0.5, 1.0):
         rendered = SimpleNamespace(depth=torch.tensor([2.0]), semantics=opacity * logits,
                                    weight_sum=torch.tensor([opacity]))
-        raw = ray_losses(rendered, torch.tensor([2.0]), labels, cfg=LossConfig())["render_semantics"]
-        norm = ray_losses(rendered, torch.tensor([2.0]), labels,
-                          cfg=LossConfig(render_semantics="normalized"))["render_semantics"]
-        assert float(norm) == pytest.approx(ce, rel=1e-5)
-        assert (float(raw) > ce + 0.1) == (opacity < 1.0)
-    with pytest.raises(ValueError, match="render_semantics"):
-        LossConfig(render_semantics="softmax")
+        inputs = {"rendered": rendered, "ray_labels": labels, "class_weights": None}
+        raw, norm = float(raw_term(inputs)), float(norm_term(inputs))
+        assert norm == pytest.approx(ce, rel=1e-5)
+        assert (raw > ce + 0.1) == (opacity < 1.0)
 
 
 def test_free_prior_charges_every_voxel_by_its_opacity():
-    from occflownet.train.losses import free_prior_loss
-
     density = torch.zeros(1, 2, 2, 2)
     assert float(free_prior_loss(density)) == 0.0
     density[0, 0, 0, 0] = 0.5
     assert float(free_prior_loss(density)) == pytest.approx(np.log(2.0) / 8, rel=1e-6)
-    vox = dict(density=density, logits=torch.zeros(1, 2, 2, 2, NUM_CLASSES),
-               semantics_gt=torch.full((1, 2, 2, 2), 17, dtype=torch.uint8))
-    cfg = LossConfig(mode="3d", free_prior_weight=0.1)
-    with pytest.raises(ValueError, match="prior_density"):
-        total_loss(cfg, **vox)
+    term = _term(TrainConfig(supervision="3d", free_prior_weight=0.1), "free_prior")
     prior = density.clone().requires_grad_()
-    terms = total_loss(cfg, **vox, prior_density=prior)
-    assert float(terms["free_prior"]) == pytest.approx(0.1 * np.log(2.0) / 8, rel=1e-6)
-    terms["free_prior"].backward()
+    value = term({"density": prior})
+    assert term.needs == ("density",) and float(value.detach()) == pytest.approx(0.1 * np.log(2.0) / 8, rel=1e-6)
+    value.backward()
     assert float(prior.grad[0, 0, 0, 0]) > float(prior.grad[0, 1, 1, 1]) > 0
-    assert "free_prior" not in total_loss(LossConfig(mode="3d"), **vox)
+    assert "free_prior" not in [t.name for t in loss_terms(TrainConfig(supervision="3d"))]
+
+
+def _computer(**overrides):
+    from occflownet.model.presets import get_preset
+    from occflownet.train.step import LossComputer
+
+    return LossComputer(TrainConfig(**overrides), get_preset("tiny"), None)
+
+
+def test_the_loss_computer_computes_only_the_inputs_its_terms_need():
+    # 3D without depth loss: no ray in the batch, no depth distribution in the outputs, and nothing is rendered
+    losses = _computer(supervision="3d", depth_loss=False, free_prior_weight=0.1)
+    density = torch.tensor([0.8, 0.3]).view(1, 2, 1, 1)
+    outputs = {"density": density, "logits": torch.zeros(1, 2, 1, 1, NUM_CLASSES)}
+    batch = {"occ_semantics": torch.tensor([4, 17], dtype=torch.uint8).view(1, 2, 1, 1)}
+    assert losses.needs == {"density", "logits", "occ_semantics"}
+    assert not set(losses.inputs(outputs, batch, torch.device("cpu"))) & {"rendered", "free_opacity", "depth_prob"}
+    terms = {k: float(v) for k, v in losses(outputs, batch, torch.device("cpu")).items()}
+    bce = -(math.log(0.8) + math.log(0.7)) / 2
+    prior = 0.1 * -(math.log(0.2) + math.log(0.7)) / 2
+    assert terms == pytest.approx({"voxel_density": bce, "voxel_semantics": LOG17, "free_prior": prior,
+                                   "loss": bce + LOG17 + prior}, rel=1e-6)
+    lacking = r"\['voxel_density', 'voxel_semantics'\] need the batch fields \['occ_mask'\]"
+    with pytest.raises(ValueError, match=lacking):
+        _computer(supervision="3d", depth_loss=False, voxel_mask=True)(outputs, batch, torch.device("cpu"))
+
+
+def _ray_batch() -> dict:
+    """One sample, two rays from (0, 0, 1) along +x (10 m) and +y (20 m), one free ray along -x; one volume."""
+    origins = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    return {"images": torch.zeros(1, 6, 2, 2, 3, dtype=torch.uint8), "cam2ego": torch.eye(4).expand(1, 6, 4, 4),
+            "ray_origins": origins, "ray_directions": torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+            "ray_depths": torch.tensor([10.0, 20.0]), "ray_labels": torch.tensor([0, 1]),
+            "ray_volume": torch.zeros(2, dtype=torch.long), "volume_source": torch.zeros(1, dtype=torch.long),
+            "volume_is_temporal": torch.zeros(1, dtype=torch.bool), "depth_points": [torch.zeros(0, 3)],
+            "free_origins": origins[:1], "free_directions": torch.tensor([[-1.0, 0.0, 0.0]]),
+            "free_volume": torch.zeros(1, dtype=torch.long)}
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.05])
+def test_the_loss_computer_renders_the_rays_of_its_terms(sigma):
+    from occflownet.occ3d import GRID
+
+    losses = _computer(free_space=True, free_before_point=True, free_rays_per_step=2, horizon=0)
+    d = losses.depth_bins.numel()
+    outputs = {"density": torch.full((1, *GRID.shape), sigma), "logits": torch.zeros(1, *GRID.shape, NUM_CLASSES),
+               "depth_prob": torch.full((1, 6, d, 2, 2), 1.0 / d),
+               "feature_intrinsics": torch.eye(3).expand(1, 6, 3, 3)}
+    terms = {k: float(v) for k, v in losses(outputs, _ray_batch(), torch.device("cpu"),
+                                              torch.Generator().manual_seed(0)).items()}
+    assert list(terms) == ["render_depth", "render_semantics", "lidar_depth", "free_space", "free_before", "loss"]
+    assert terms["lidar_depth"] == 0 and terms["render_semantics"] == pytest.approx(LOG17, rel=1e-5)
+    assert terms["loss"] == pytest.approx(sum(v for k, v in terms.items() if k != "loss"), rel=1e-6)
+    if sigma == 0:  # transparent: depth 0 (0.05 · mean d²), nothing stops the free rays
+        assert terms["render_depth"] == pytest.approx(0.05 * (10.0 ** 2 + 20.0 ** 2) / 2)
+        assert terms["free_space"] == 0 and terms["free_before"] == 0
+    else:  # σ = 0.05 /m: -log(1 - opacity) is the optical depth 0.05 · length from near = 0.05 m (trilinear σ fades
+        # over the last half voxel before the grid's edge at 40 m)
+        assert terms["free_space"] == pytest.approx(0.05 * (40.0 - 0.05), rel=3e-3)
+        stretches = [0.05 * (0.8 * depth - 0.6 - 0.05) for depth in (10.0, 20.0)]     # to 0.8 · depth - 0.6 m
+        assert terms["free_before"] == pytest.approx(np.mean(stretches), rel=3e-3)

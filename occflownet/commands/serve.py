@@ -1,35 +1,40 @@
 """`occflownet serve`: serve an exported ONNX model over HTTP (FastAPI + uvicorn + onnxruntime, no torch).
 
-Options left unset fall back to the ``OCCFLOWNET_*`` environment variables and a ``.env`` file (see
-serve/settings.py), then to the defaults. With ``--workers N`` the settings reach the workers through the
-environment, and their metrics are kept in one ``PROMETHEUS_MULTIPROC_DIR`` folder (made and removed here) so that
-``/metrics`` answers for all of them. The model is checked before uvicorn starts, so a missing or invalid file ends the command with a message
-naming it (exit status 2). The API key is read from ``OCCFLOWNET_API_KEY`` only (never a command-line argument,
-which other users could read from the process list).
+The options are the fields of ``serve.settings.ServeSettings`` (``occflownet/options.py`` ``add_model_options``:
+names, help and the defaults shown come from the fields), but the API key, which is read from
+``OCCFLOWNET_API_KEY`` only (never a command-line argument, which other users could read from the process list),
+and the body limit, given in MiB (``--max-body-mb``) where the setting counts bytes; plus uvicorn's ``--host``,
+``--port``, ``--log-level`` and ``--no-access-log``. Options left unset fall back to the ``OCCFLOWNET_*``
+environment variables and a ``.env`` file, then to the defaults. With ``--workers N`` the settings reach the workers
+through the environment, and their metrics are kept in one ``PROMETHEUS_MULTIPROC_DIR`` folder (made and removed
+here) so that ``/metrics`` answers for all of them. The model is checked before uvicorn starts, so a missing or
+invalid file ends the command with a message naming it (exit status 2).
 """
 import os
 import sys
 
+from occflownet.options import add_model_options, model_kwargs
+
 HELP = "serve an ONNX model over HTTP"
+NOT_OPTIONS = ("api_key", "max_body_bytes")  # the key: environment only; the body limit: --max-body-mb
+MIB = 1024 * 1024
+NEEDS_EXTRA = "needs the serve extra (pip install 'occflownet[serve]')"
 
 
 def add_arguments(parser):
-    parser.add_argument("--model", help="contract-v1 ONNX file (default: $OCCFLOWNET_MODEL)")
+    try:
+        from occflownet.serve.settings import ServeSettings, env_name
+    except ImportError as exc:  # an install without the serve extra: the other verbs still start
+        parser.description = f"{HELP}: {NEEDS_EXTRA}"
+        parser.set_defaults(missing_extra=str(exc))
+        return
+    add_model_options(parser, ServeSettings, skip=NOT_OPTIONS, env=env_name)
+    body = ServeSettings.model_fields["max_body_bytes"]
+    parser.add_argument("--max-body-mb", type=float, default=None,
+                        help=f"{body.description} in MiB (default: {body.default / MIB:g}; "
+                             f"${env_name('max_body_bytes')} in bytes)")
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
-    parser.add_argument("--workers", type=int, default=None,
-                        help="uvicorn worker processes, each with its own model session (default 1)")
-    parser.add_argument("--threads", type=int, default=None, dest="intra_op_threads",
-                        help="onnxruntime intra-op threads per inference (default: cores // workers)")
-    parser.add_argument("--max-inflight", type=int, default=None,
-                        help="concurrent inferences per worker (default: max(1, cores // workers // threads))")
-    parser.add_argument("--max-queue", type=int, default=None,
-                        help="requests admitted beyond those running; more get 503 + Retry-After (default 4)")
-    parser.add_argument("--max-body-mb", type=float, default=None, help="request body limit in MiB (default 64)")
-    parser.add_argument("--max-image-pixels", type=int, default=None,
-                        help="pixels per image, checked from the header before decoding (default 4096*4096)")
-    parser.add_argument("--no-warmup", action="store_true", help="ready at once, without a warm-up inference")
-    parser.add_argument("--no-ui", action="store_true", help="no browser page at /ui: the API only")
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     parser.add_argument("--no-access-log", action="store_true", help="do not log one line per request")
 
@@ -38,14 +43,14 @@ def _settings(args):
     """The options given, over the environment (``ServeSettings.from_env``: a bad value raises SettingsError)."""
     from occflownet.serve.settings import ServeSettings
 
-    body = None if args.max_body_mb is None else int(args.max_body_mb * 1024 * 1024)
-    return ServeSettings.from_env(model_path=args.model, workers=args.workers, intra_op_threads=args.intra_op_threads,
-                                  max_inflight=args.max_inflight, max_queue=args.max_queue,
-                                  max_image_pixels=args.max_image_pixels, max_body_bytes=body,
-                                  warmup=False if args.no_warmup else None, ui=False if args.no_ui else None)
+    body = None if args.max_body_mb is None else int(args.max_body_mb * MIB)
+    return ServeSettings.from_env(**model_kwargs(args, ServeSettings, skip=NOT_OPTIONS), max_body_bytes=body)
 
 
 def run(args) -> int:
+    if getattr(args, "missing_extra", None):
+        print(f"occflownet serve {NEEDS_EXTRA}: {args.missing_extra}", file=sys.stderr)
+        return 2
     try:
         settings = _settings(args)
         resolved = settings.resolved()

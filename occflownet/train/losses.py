@@ -1,69 +1,112 @@
-"""Training losses: rendering (2D), LiDAR depth supervision of the LSS depth distribution, and 3D voxel labels.
+"""Training losses: the weighted terms of a run, chosen once from its :class:`TrainConfig`, and their functions.
 
-Weights and definitions follow the paper and the official OccFlowNet code (docs/render.md):
-- rendered depth: MSE per ray × ω(label), weight 0.05; rendered semantics: cross-entropy (softmax of the rendered
-  logit mixture) per ray × ω(label), weight 1.0; both are the mean over rays of the weighted per-ray terms, as
-  mmdet's ``weight_reduce_loss`` does in the official code. ω are the per-class weights from the data index
-  (``occflownet.data.class_weights``: log(ΣN / N_c) normalised to mean 1), used as given; None = all ones;
-- LiDAR depth (BEVDepth/BEVDet ``get_depth_loss``): the LiDAR points of the current frame are projected into the
-  feature map of every camera; each feature pixel that receives points gets the one-hot of the depth bin
-  nearest to its *closest* point; BCE between the predicted depth distribution and that one-hot, summed over
-  bins and averaged over pixels with a target; weight 0.05;
-- 3D (paper section 3.3): BCE on σ over all voxels (target occupied = label != 17), CE on the semantic logits of
-  the occupied voxels, weight 1.0 each; an optional mask (e.g. ``mask_camera``) restricts both.
+:func:`loss_terms` reads the configuration and returns the run's terms, each a :class:`LossTerm`: the name the
+training log uses, its weight, the inputs it needs, and the unweighted function of those inputs. The inputs are named
+as :class:`occflownet.train.step.LossComputer` provides them (it computes only those its terms name): batch fields
+(``ray_depths``, ``ray_labels``, ``cam2ego``, ``depth_points``, ``occ_semantics``, ``occ_mask``), model outputs
+(``density``, ``logits``, ``depth_prob``, ``feature_intrinsics``), renderings through the per-frame volumes
+(``rendered``, the ``RenderOutput`` of the batch's rays; ``free_opacity``; ``before_opacity``) and constants
+(``class_weights``, ``depth_bins``). The loss is the sum of the weighted terms, in this order:
 
-Weighted terms (the names the training log uses): ``ray_losses`` → "render_depth", "render_semantics";
-``voxel_losses`` → "voxel_density", "voxel_semantics"; ``lidar_depth_loss`` × ``lidar_depth_weight`` →
-"lidar_depth"; ``free_space_loss`` × ``free_space_weight`` → "free_space" (beyond the paper: LiDAR beams without a
-return render through empty space).
-Beyond the paper (options, docs/ablation.md): ``render_semantics="normalized"`` takes the CE of the rendered
-mixture divided by its weight sum (the official CE on the raw mixture Σ w_i s_i also falls when the ray's opacity
-grows anywhere along it, which rewards density in front of the surface); ``free_prior_weight`` > 0 adds
-"free_prior": the mean over every voxel of -log(1 - σ), a pull towards free space for the voxels no ray reaches.
-``total_loss`` combines the terms for the mode ``"2d"``, ``"3d"`` or ``"2d+3d"`` and adds their sum as "total".
-``render_losses`` and ``lidar_depth_loss`` are the unweighted primitives.
+- "render_depth" (2D supervision): MSE of the rendered depth per ray × ω(label), weight ``render_depth_weight``
+  (0.05, official; 0 without ``depth_loss``, the "semantics only" row, which still logs the term);
+- "render_semantics" (2D): cross-entropy of the rendered logit mixture per ray × ω(label), weight 1.0; both are
+  the mean over rays of the weighted per-ray terms, as mmdet's ``weight_reduce_loss`` does in the official code.
+  ω are the per-class weights from the data index (``occflownet.data.class_weights``: log(ΣN / N_c) normalised to
+  mean 1), used as given; None = all ones. ``render_semantics="normalized"`` (beyond the paper) takes the CE of the
+  mixture divided by its weight sum: the official CE on the raw mixture Σ w_i s_i also falls when the ray's
+  opacity grows anywhere along it, which rewards density in front of the surface;
+- "voxel_density", "voxel_semantics" (3D supervision, paper section 3.3): BCE on σ over all voxels (target
+  occupied = label != 17) and CE on the semantic logits of the occupied voxels, weight 1.0 each; with
+  ``voxel_mask`` both only inside ``mask_camera``;
+- "lidar_depth" (``depth_loss``; BEVDepth/BEVDet ``get_depth_loss``): the LiDAR points of the current frame are
+  projected into the feature map of every camera; each feature pixel that receives points gets the one-hot of the
+  depth bin nearest to its *closest* point; BCE between the predicted depth distribution and that one-hot, summed
+  over bins and averaged over pixels with a target; weight 0.05;
+- "free_space" (``free_space`` or ``free_beyond_grid``, beyond the paper): mean -log(1 - opacity) of the free rays
+  (LiDAR beams without a return, camera rays to points beyond the grid), weight ``free_space_weight`` (none at 0);
+- "free_before" (``free_before_point``, beyond the paper): the same loss and weight over the free stretches in
+  front of the rays' points;
+- "free_prior" (``free_prior_weight`` > 0, beyond the paper): mean over every voxel of -log(1 - σ), a pull towards
+  free space for the voxels no ray reaches.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
 
-from occflownet.choices import RENDER_SEMANTICS, SUPERVISION_MODES
 from occflownet.occ3d import FREE, NUM_CLASSES
+from occflownet.train.recipe import TrainConfig
 
-MODES = SUPERVISION_MODES
+SEMANTIC_WEIGHT = 1.0      # rendered semantics CE (official)
+LIDAR_DEPTH_WEIGHT = 0.05  # BCE on the LSS depth distribution (official)
+VOXEL_WEIGHT = 1.0         # each of the two 3D terms (paper section 3.3)
 
 
 @dataclass(frozen=True)
-class LossConfig:
-    """Loss weights and the supervision mode; defaults are the official code's."""
+class LossTerm:
+    """One weighted term of the training loss, logged as ``name``: ``weight · fn(*inputs)``, the inputs named by
+    ``needs`` in the order ``fn`` takes them."""
 
-    mode: str = "2d"                    # "2d" rendering, "3d" voxel labels, "2d+3d" both
-    depth_weight: float = 0.05          # rendered depth MSE
-    semantic_weight: float = 1.0        # rendered semantics CE
-    lidar_depth_weight: float = 0.05    # BCE on the LSS depth distribution (0 disables it)
-    voxel_density_weight: float = 1.0   # 3D: BCE on σ
-    voxel_semantic_weight: float = 1.0  # 3D: CE on the logits of occupied voxels
-    free_space_weight: float = 1.0      # free-space beams: BCE of their rendered opacity towards 0 (when given)
-    render_semantics: str = "mixture"   # CE on the raw mixture (official) or on it ÷ weight sum ("normalized")
-    free_prior_weight: float = 0.0      # mean -log(1 - σ) over all voxels (0 = off, the official setting)
+    name: str
+    weight: float
+    needs: tuple[str, ...]
+    fn: Callable[..., torch.Tensor]
 
-    def __post_init__(self):
-        if self.mode not in MODES:
-            raise ValueError(f"LossConfig.mode must be one of {MODES}, got {self.mode!r}")
-        if self.render_semantics not in RENDER_SEMANTICS:
-            raise ValueError(f"LossConfig.render_semantics must be one of {RENDER_SEMANTICS}, "
-                             f"got {self.render_semantics!r}")
-        for name in ("depth_weight", "semantic_weight", "lidar_depth_weight", "voxel_density_weight",
-                     "voxel_semantic_weight", "free_space_weight", "free_prior_weight"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"LossConfig.{name} must be >= 0, got {getattr(self, name)}")
+    def __call__(self, inputs: Mapping[str, Any]) -> torch.Tensor:
+        """The weighted term (a scalar tensor) of ``inputs``, which maps at least every name of ``needs``."""
+        return self.weight * self.fn(*(inputs[name] for name in self.needs))
+
+
+def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
+    """The terms of a run (see the module docstring), in the order the log lists them and the loss sums them."""
+    rays = ("rendered", "ray_depths", "ray_labels", "class_weights")
+    voxels = ("occ_semantics", "occ_mask") if cfg.voxel_mask else ("occ_semantics",)
+    terms = []
+    if cfg.uses_2d:
+        semantics = normalized_semantics_loss if cfg.render_semantics == "normalized" else render_semantics_loss
+        terms += [LossTerm("render_depth", cfg.render_depth_weight if cfg.depth_loss else 0.0, rays,
+                           render_depth_loss),
+                  LossTerm("render_semantics", SEMANTIC_WEIGHT, ("rendered", "ray_labels", "class_weights"),
+                           semantics)]
+    if cfg.uses_3d:
+        terms += [LossTerm("voxel_density", VOXEL_WEIGHT, ("density", *voxels), voxel_density_loss),
+                  LossTerm("voxel_semantics", VOXEL_WEIGHT, ("logits", *voxels), voxel_semantics_loss)]
+    if cfg.depth_loss:
+        terms.append(LossTerm("lidar_depth", LIDAR_DEPTH_WEIGHT,
+                              ("depth_prob", "feature_intrinsics", "cam2ego", "depth_points", "depth_bins"),
+                              lidar_depth_loss))
+    if cfg.uses_free_rays and cfg.free_space_weight > 0:
+        terms.append(LossTerm("free_space", cfg.free_space_weight, ("free_opacity",), free_space_loss))
+    if cfg.free_before_point and cfg.free_space_weight > 0:
+        terms.append(LossTerm("free_before", cfg.free_space_weight, ("before_opacity",), free_space_loss))
+    if cfg.free_prior_weight > 0:
+        terms.append(LossTerm("free_prior", cfg.free_prior_weight, ("density",), free_prior_loss))
+    return tuple(terms)
+
+
+# --- the rendered rays --------------------------------------------------------------------------------------------
+
+def _ray_labels(rendered, labels_gt: torch.Tensor) -> torch.Tensor:
+    """labels_gt [R] as long, checked against ``rendered`` (depth [R], semantics [R, 17])."""
+    depth, semantics = rendered.depth, rendered.semantics
+    if depth.dim() != 1 or semantics.shape != (depth.shape[0], NUM_CLASSES):
+        raise ValueError(f"rendered depth must be [R] and semantics [R, {NUM_CLASSES}], got {tuple(depth.shape)} "
+                         f"and {tuple(semantics.shape)}")
+    if labels_gt.shape != depth.shape:
+        raise ValueError(f"labels_gt must be [R] = [{depth.shape[0]}], got {tuple(labels_gt.shape)}")
+    labels = labels_gt.long()
+    if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= NUM_CLASSES):
+        raise ValueError(f"labels_gt must lie in [0, {NUM_CLASSES}), got [{int(labels.min())}, {int(labels.max())}]")
+    return labels
 
 
 def _ray_weights(labels: torch.Tensor, class_weights: torch.Tensor | None, dtype) -> torch.Tensor:
+    """ω(label) [R] from class_weights [17] (None: ones)."""
     if class_weights is None:
         return torch.ones(labels.shape, dtype=dtype, device=labels.device)
     class_weights = torch.as_tensor(class_weights, dtype=dtype, device=labels.device)
@@ -72,41 +115,43 @@ def _ray_weights(labels: torch.Tensor, class_weights: torch.Tensor | None, dtype
     return class_weights[labels]
 
 
-def render_losses(depth: torch.Tensor, semantics: torch.Tensor, depth_gt: torch.Tensor, labels_gt: torch.Tensor,
-                  class_weights: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """Unweighted rendering losses → {"depth": mean ω·(d - d_gt)², "semantics": mean ω·CE}.
-
-    depth [R] and semantics [R, 17] from ``render_rays``; depth_gt [R] metres along the ray (Euclidean distance
-    from the camera centre, not z-depth); labels_gt [R] long Occ3D classes 0..16; class_weights [17] or None.
-    With R = 0 both terms are 0 (and keep the graph).
-    """
-    if depth.dim() != 1 or semantics.shape != (depth.shape[0], NUM_CLASSES):
-        raise ValueError(f"depth must be [R] and semantics [R, {NUM_CLASSES}], got {tuple(depth.shape)} and "
-                         f"{tuple(semantics.shape)}")
-    if depth_gt.shape != depth.shape or labels_gt.shape != depth.shape:
-        raise ValueError(f"depth_gt and labels_gt must be [R] = [{depth.shape[0]}], got {tuple(depth_gt.shape)} and "
-                         f"{tuple(labels_gt.shape)}")
-    labels = labels_gt.long()
+def render_depth_loss(rendered, depth_gt: torch.Tensor, labels_gt: torch.Tensor,
+                      class_weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean over rays of ω(label)·(d − d_gt)², unweighted. ``rendered``: a ``RenderOutput`` (depth [R],
+    semantics [R, 17]); depth_gt [R] metres along the ray (distance from the camera centre, not z-depth);
+    labels_gt [R] Occ3D classes 0..16; class_weights [17] or None. R = 0 gives 0 (graph kept)."""
+    labels = _ray_labels(rendered, labels_gt)
+    depth = rendered.depth
+    if depth_gt.shape != depth.shape:
+        raise ValueError(f"depth_gt must be [R] = [{depth.shape[0]}], got {tuple(depth_gt.shape)}")
     if depth.shape[0] == 0:
-        zero = depth.sum() + semantics.sum()
-        return {"depth": zero, "semantics": zero}
-    if int(labels.min()) < 0 or int(labels.max()) >= NUM_CLASSES:
-        raise ValueError(f"labels_gt must lie in [0, {NUM_CLASSES}), got [{int(labels.min())}, {int(labels.max())}]")
+        return depth.sum()
     w = _ray_weights(labels, class_weights, depth.dtype)
-    depth_term = (w * (depth - depth_gt.to(depth.dtype)) ** 2).mean()
-    sem_term = (w * F.cross_entropy(semantics, labels, reduction="none")).mean()
-    return {"depth": depth_term, "semantics": sem_term}
+    return (w * (depth - depth_gt.to(depth.dtype)) ** 2).mean()
 
 
-def ray_losses(rendered, depth_gt: torch.Tensor, labels_gt: torch.Tensor, class_weights: torch.Tensor | None = None,
-               cfg: LossConfig = LossConfig()) -> dict[str, torch.Tensor]:
-    """Weighted rendering terms {"render_depth": depth_weight · MSE, "render_semantics": semantic_weight · CE} for
-    ``rendered`` (a ``RenderOutput``: depth [R], semantics [R, 17], weight_sum [R]); see ``render_losses``."""
-    semantics = rendered.semantics
-    if cfg.render_semantics == "normalized":  # the logits the ray sees, whatever share of its light stops
-        semantics = semantics / rendered.weight_sum.clamp(min=1e-4).unsqueeze(-1)
-    r = render_losses(rendered.depth, semantics, depth_gt, labels_gt, class_weights)
-    return {"render_depth": cfg.depth_weight * r["depth"], "render_semantics": cfg.semantic_weight * r["semantics"]}
+def _semantics_ce(semantics: torch.Tensor, labels: torch.Tensor, class_weights: torch.Tensor | None) -> torch.Tensor:
+    """Mean over rays of ω(label)·CE(semantics [R, 17], labels [R]); R = 0 gives 0 (graph kept)."""
+    if semantics.shape[0] == 0:
+        return semantics.sum()
+    w = _ray_weights(labels, class_weights, semantics.dtype)
+    return (w * F.cross_entropy(semantics, labels, reduction="none")).mean()
+
+
+def render_semantics_loss(rendered, labels_gt: torch.Tensor,
+                          class_weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean over rays of ω(label)·CE of the rendered logit mixture Σ w_i s_i (``rendered.semantics`` [R, 17], the
+    official term), unweighted; labels_gt [R], class_weights [17] or None."""
+    return _semantics_ce(rendered.semantics, _ray_labels(rendered, labels_gt), class_weights)
+
+
+def normalized_semantics_loss(rendered, labels_gt: torch.Tensor,
+                              class_weights: torch.Tensor | None = None) -> torch.Tensor:
+    """As :func:`render_semantics_loss` on the mixture ÷ the ray's weight sum (``rendered.weight_sum`` [R],
+    clamped at 1e-4): the logits the ray sees, whatever share of its light stops."""
+    labels = _ray_labels(rendered, labels_gt)
+    return _semantics_ce(rendered.semantics / rendered.weight_sum.clamp(min=1e-4).unsqueeze(-1), labels,
+                         class_weights)
 
 
 def free_space_loss(opacity: torch.Tensor) -> torch.Tensor:
@@ -120,6 +165,8 @@ def free_space_loss(opacity: torch.Tensor) -> torch.Tensor:
     return -torch.log1p(-opacity.clamp(0.0, 1.0 - 1e-4)).mean()
 
 
+# --- the voxels -----------------------------------------------------------------------------------------------------
+
 def free_prior_loss(density: torch.Tensor) -> torch.Tensor:
     """Unweighted free prior: mean over all voxels of -log(1 - σ), density [B, X, Y, Z] in [0, 1] (clamped at
     1 - 1e-4). With ``sigma_is="opacity"`` it is each voxel's optical depth, so it charges every voxel by how much
@@ -129,6 +176,50 @@ def free_prior_loss(density: torch.Tensor) -> torch.Tensor:
         return free_space_loss(density.float().reshape(-1))
 
 
+def _voxel_labels(volume: torch.Tensor, semantics_gt: torch.Tensor, mask: torch.Tensor | None):
+    """(labels long [B, X, Y, Z], occupied bool, kept bool: ``mask`` or every voxel), checked against the shape
+    of ``volume`` (density [B, X, Y, Z] or logits [B, X, Y, Z, 17])."""
+    shape = volume.shape[:4]
+    if semantics_gt.shape != shape:
+        raise ValueError(f"semantics_gt must be {tuple(shape)}, got {tuple(semantics_gt.shape)}")
+    labels = semantics_gt.long()
+    if int(labels.min()) < 0 or int(labels.max()) > FREE:
+        raise ValueError(f"semantics_gt values must lie in [0, {FREE}]")
+    occupied = labels != FREE
+    if mask is None:
+        return labels, occupied, torch.ones_like(occupied)
+    if mask.shape != shape:
+        raise ValueError(f"mask must be {tuple(shape)}, got {tuple(mask.shape)}")
+    return labels, occupied, mask.bool()
+
+
+def voxel_density_loss(density: torch.Tensor, semantics_gt: torch.Tensor,
+                       mask: torch.Tensor | None = None) -> torch.Tensor:
+    """BCE(σ, gt != 17), mean over the (masked) voxels, unweighted. density [B, X, Y, Z] in [0, 1];
+    semantics_gt uint8/long [B, X, Y, Z] with 17 = free; mask bool [B, X, Y, Z] or None (every voxel, as the
+    official 3D training). No voxel kept gives 0 (graph kept)."""
+    if density.dim() != 4:
+        raise ValueError(f"density must be [B, X, Y, Z], got {tuple(density.shape)}")
+    _, occupied, keep = _voxel_labels(density, semantics_gt, mask)
+    with torch.autocast(device_type=density.device.type, enabled=False):
+        sigma = density[keep].float()
+        return F.binary_cross_entropy(sigma, occupied[keep].float()) if sigma.numel() else density.sum() * 0
+
+
+def voxel_semantics_loss(logits: torch.Tensor, semantics_gt: torch.Tensor,
+                         mask: torch.Tensor | None = None) -> torch.Tensor:
+    """CE of the logits [B, X, Y, Z, 17] over the occupied (masked) voxels, unweighted; semantics_gt and mask as
+    in :func:`voxel_density_loss`. No occupied voxel kept gives 0 (graph kept)."""
+    if logits.dim() != 5 or logits.shape[-1] != NUM_CLASSES:
+        raise ValueError(f"logits must be [B, X, Y, Z, {NUM_CLASSES}], got {tuple(logits.shape)}")
+    labels, occupied, keep = _voxel_labels(logits, semantics_gt, mask)
+    sem_keep = keep & occupied
+    if bool(sem_keep.any()):
+        return F.cross_entropy(logits[sem_keep], labels[sem_keep])
+    return logits.sum() * 0.0
+
+
+# --- the LiDAR depth of the LSS depth distribution ------------------------------------------------------------------
 def lidar_depth_targets(feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor,
                         points_ego: Sequence[torch.Tensor], feature_size: tuple[int, int],
                         depth_bin_centers: torch.Tensor) -> torch.Tensor:
@@ -181,7 +272,7 @@ def lidar_depth_loss(depth_prob: torch.Tensor, feature_intrinsics: torch.Tensor,
                      points_ego: Sequence[torch.Tensor], depth_bin_centers: torch.Tensor) -> torch.Tensor:
     """BCE between the LSS depth distribution depth_prob [B, N, D, h, w] (probabilities over D) and one-hot
     LiDAR targets (``lidar_depth_targets``): summed over the D bins, averaged over pixels with a target
-    (0 when no pixel has one). Unweighted (``LossConfig.lidar_depth_weight`` is applied by ``total_loss``)."""
+    (0 when no pixel has one). Unweighted (the "lidar_depth" term weighs it by ``LIDAR_DEPTH_WEIGHT``)."""
     if depth_prob.dim() != 5 or depth_prob.shape[2] != depth_bin_centers.numel():
         raise ValueError(f"depth_prob must be [B, N, D, h, w] with D = {depth_bin_centers.numel()} bins, got "
                          f"{tuple(depth_prob.shape)}")
@@ -199,81 +290,3 @@ def lidar_depth_loss(depth_prob: torch.Tensor, feature_intrinsics: torch.Tensor,
     return bce / n_target
 
 
-def voxel_losses(density: torch.Tensor, logits: torch.Tensor, semantics_gt: torch.Tensor,
-                 mask: torch.Tensor | None = None, cfg: LossConfig = LossConfig()) -> dict[str, torch.Tensor]:
-    """3D supervision → {"voxel_density": voxel_density_weight · BCE(σ, gt != 17) mean over the (masked) voxels,
-    "voxel_semantics": voxel_semantic_weight · CE over the occupied (masked) voxels} (both weights 1 by default).
-    density [B, X, Y, Z] in [0, 1]; logits [B, X, Y, Z, 17]; semantics_gt uint8/long [B, X, Y, Z] with
-    17 = free; mask bool [B, X, Y, Z] or None (all voxels; the official 3D training uses no mask)."""
-    if logits.shape[:-1] != density.shape or logits.shape[-1] != NUM_CLASSES:
-        raise ValueError(f"logits must be density's shape {tuple(density.shape)} + [{NUM_CLASSES}], got "
-                         f"{tuple(logits.shape)}")
-    if semantics_gt.shape != density.shape:
-        raise ValueError(f"semantics_gt must be {tuple(density.shape)}, got {tuple(semantics_gt.shape)}")
-    labels = semantics_gt.long()
-    if int(labels.min()) < 0 or int(labels.max()) > FREE:
-        raise ValueError(f"semantics_gt values must lie in [0, {FREE}]")
-    occupied = labels != FREE
-    if mask is not None:
-        if mask.shape != density.shape:
-            raise ValueError(f"mask must be {tuple(density.shape)}, got {tuple(mask.shape)}")
-        keep = mask.bool()
-    else:
-        keep = torch.ones_like(occupied)
-    with torch.autocast(device_type=density.device.type, enabled=False):
-        sigma = density[keep].float()
-        density_term = F.binary_cross_entropy(sigma, occupied[keep].float()) if sigma.numel() else density.sum() * 0
-    sem_keep = keep & occupied
-    if bool(sem_keep.any()):
-        semantic_term = F.cross_entropy(logits[sem_keep], labels[sem_keep])
-    else:
-        semantic_term = logits.sum() * 0.0
-    return {"voxel_density": cfg.voxel_density_weight * density_term,
-            "voxel_semantics": cfg.voxel_semantic_weight * semantic_term}
-
-
-def _require(what: str, **inputs) -> None:
-    """ValueError naming the inputs ``what`` needs that are None."""
-    missing = [name for name, value in inputs.items() if value is None]
-    if missing:
-        raise ValueError(f"{what} needs {', '.join(missing)}")
-
-
-def total_loss(cfg: LossConfig, *, rendered=None, depth_gt=None, labels_gt=None, class_weights=None,
-               depth_prob=None, feature_intrinsics=None, cam2ego=None, points_ego=None, depth_bin_centers=None,
-               density=None, logits=None, semantics_gt=None, voxel_mask=None,
-               free_opacity=None, before_opacity=None, prior_density=None) -> dict[str, torch.Tensor]:
-    """Weighted loss terms of the configured mode plus their sum under "total".
-
-    2D terms (modes "2d", "2d+3d"): ``rendered`` (a ``RenderOutput``), ``depth_gt`` [R], ``labels_gt`` [R],
-    ``class_weights`` [17] or None → "render_depth", "render_semantics". 3D terms (modes "3d", "2d+3d"):
-    ``density``, ``logits``, ``semantics_gt``, ``voxel_mask`` → "voxel_density", "voxel_semantics". LiDAR depth
-    (any mode, when ``lidar_depth_weight`` > 0 and ``depth_prob`` is given): "lidar_depth". Free-space beams (any
-    mode, when ``free_opacity`` [F] is given): "free_space"; the free stretches in front of the rays' points
-    (``before_opacity`` [S]): "free_before", the same loss and weight. Free prior (any mode, when ``free_prior_weight`` > 0:
-    ``prior_density`` [B, X, Y, Z] is required): "free_prior". Every term is already
-    multiplied by its weight. A missing input the mode needs raises ValueError naming it.
-    """
-    terms: dict[str, torch.Tensor] = {}
-    if cfg.mode in ("2d", "2d+3d"):
-        _require(f"total_loss mode {cfg.mode!r}", rendered=rendered, depth_gt=depth_gt, labels_gt=labels_gt)
-        terms.update(ray_losses(rendered, depth_gt, labels_gt, class_weights, cfg))
-    if cfg.mode in ("3d", "2d+3d"):
-        _require(f"total_loss mode {cfg.mode!r}", density=density, logits=logits, semantics_gt=semantics_gt)
-        terms.update(voxel_losses(density, logits, semantics_gt, voxel_mask, cfg))
-    if cfg.lidar_depth_weight > 0 and depth_prob is not None:
-        _require("lidar depth loss (with depth_prob)", feature_intrinsics=feature_intrinsics, cam2ego=cam2ego,
-                 points_ego=points_ego, depth_bin_centers=depth_bin_centers)
-        terms["lidar_depth"] = cfg.lidar_depth_weight * lidar_depth_loss(
-            depth_prob, feature_intrinsics, cam2ego, points_ego, depth_bin_centers)
-    if free_opacity is not None and cfg.free_space_weight > 0:
-        terms["free_space"] = cfg.free_space_weight * free_space_loss(free_opacity)
-    if before_opacity is not None and cfg.free_space_weight > 0:
-        terms["free_before"] = cfg.free_space_weight * free_space_loss(before_opacity)
-    if cfg.free_prior_weight > 0:
-        _require("free prior (free_prior_weight > 0)", prior_density=prior_density)
-        terms["free_prior"] = cfg.free_prior_weight * free_prior_loss(prior_density)
-    if not terms:
-        raise ValueError("total_loss produced no term: check LossConfig.mode and the inputs")
-    terms["total"] = sum(terms.values())
-    return terms

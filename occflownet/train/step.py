@@ -1,4 +1,5 @@
-"""One training step's losses: volumes per frame (disocclusion / occupancy flow) → rendering → loss terms.
+"""One training step's losses: the terms chosen once from the configuration (``losses.loss_terms``), and per step
+only the inputs they need: volumes per frame (disocclusion / occupancy flow) → renderings, batch fields, outputs.
 
 Inputs come from :func:`occflownet.train.dataset.collate`; everything is in the current ego frame of each sample.
 Volume layout: per sample b, volume 0 is the prediction itself (t = 0); without flow, volume 1 serves every
@@ -7,21 +8,25 @@ indexes the stacked [N, X, Y, Z] volumes.
 """
 from __future__ import annotations
 
-from dataclasses import replace
-
 import torch
 
 from occflownet.data.rays import FREE_BEFORE_MIN, free_segment_ends
-from occflownet.train import losses as L
 from occflownet.model.presets import ModelConfig
 from occflownet.render.disocclusion import disocclude
 from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
 from occflownet.render.volume_render import RenderConfig, render_rays
+from occflownet.train.losses import loss_terms
 from occflownet.train.recipe import TrainConfig
+
+# The renderings a term may need, in the order they are made: each draws its render jitter from the step's
+# generator after the one before, so the order is part of what a step computes.
+RENDERINGS = ("rendered", "free_opacity", "before_opacity")
 
 
 class LossComputer:
-    """Callable ``(model outputs, batch, device, generator) → {name: scalar tensor, "loss": total}``."""
+    """Callable ``(model outputs, batch, device, generator) → {term name: scalar tensor, ..., "loss": their sum}``
+    over the terms of ``loss_terms(cfg)`` (``self.terms``), each call computing only the inputs they name
+    (``self.needs``)."""
 
     def __init__(self, cfg: TrainConfig, model_cfg: ModelConfig, class_weights: torch.Tensor | None,
                  render_cfg: RenderConfig | None = None):
@@ -29,11 +34,59 @@ class LossComputer:
         self.render_cfg = render_cfg or RenderConfig(density_scale=cfg.density_scale, sigma_is=cfg.sigma_is)
         self.class_weights = class_weights
         self.depth_bins = torch.tensor(model_cfg.depth_bin_centers(), dtype=torch.float32)
-        self.loss_cfg = L.LossConfig(mode=cfg.supervision, free_space_weight=cfg.free_space_weight,
-                                     depth_weight=cfg.render_depth_weight, render_semantics=cfg.render_semantics,
-                                     free_prior_weight=cfg.free_prior_weight)
-        if not cfg.depth_loss:  # "semantics only": no rendered-depth and no LiDAR-depth term
-            self.loss_cfg = replace(self.loss_cfg, depth_weight=0.0, lidar_depth_weight=0.0)
+        self.terms = loss_terms(cfg)
+        self.needs = frozenset(name for term in self.terms for name in term.needs)
+
+    def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None) -> dict:
+        inputs = self.inputs(outputs, batch, device, generator)
+        terms = {term.name: term(inputs) for term in self.terms}
+        terms["loss"] = sum(terms.values())
+        return terms
+
+    def inputs(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None) -> dict:
+        """The inputs the terms name (``self.needs``), each computed once (and a few cheap others):
+
+        - model outputs as float32: "density" [B, X, Y, Z], "logits" [B, X, Y, Z, 17], "depth_prob" [B, N, D, h, w];
+          "feature_intrinsics" [B, N, 3, 3];
+        - renderings (:meth:`renderings`): "rendered", "free_opacity" [F], "before_opacity" [S];
+        - constants: "class_weights" [17] or None, "depth_bins" [D];
+        - every other name is a batch field, moved to ``device`` ("ray_depths" [R], "ray_labels" [R], "cam2ego"
+          [B, N, 4, 4], "depth_points" B × [P_b, 3], "occ_semantics" [B, X, Y, Z], "occ_mask" [B, X, Y, Z]).
+        """
+        density, logits = outputs["density"].float(), outputs["logits"].float()
+        found = {"density": density, "logits": logits, "depth_bins": self.depth_bins.to(device),
+                 "class_weights": None if self.class_weights is None else self.class_weights.to(device)}
+        if "depth_prob" in self.needs:
+            found.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"])
+        found.update(self.renderings(density, logits, batch, device, generator))
+        missing = sorted(self.needs - found.keys() - batch.keys())
+        if missing:
+            users = [term.name for term in self.terms if set(term.needs) & set(missing)]
+            raise ValueError(f"the loss terms {users} need the batch fields {missing}, which the batch lacks")
+        for name in self.needs - found.keys():
+            value = batch[name]
+            found[name] = [v.to(device) for v in value] if isinstance(value, list) else value.to(device)
+        return found
+
+    def renderings(self, density: torch.Tensor, logits: torch.Tensor, batch: dict, device,
+                   generator: torch.Generator | None = None) -> dict:
+        """Those of :data:`RENDERINGS` the terms need, through the per-frame volumes (:meth:`volumes`), in that
+        order: "rendered" (``RenderOutput`` of the batch's rays), "free_opacity" (:meth:`_free_opacity`),
+        "before_opacity" (:meth:`_before_opacity`)."""
+        wanted = [name for name in RENDERINGS if name in self.needs]
+        if not wanted:
+            return {}
+        dens, logi = self.volumes(density, logits, batch, device)
+        made = {}
+        if "rendered" in wanted:
+            made["rendered"] = render_rays(dens, logi, batch["ray_origins"].to(device),
+                                           batch["ray_directions"].to(device), self.render_cfg, generator=generator,
+                                           batch_index=batch["ray_volume"].to(device))
+        if "free_opacity" in wanted:
+            made["free_opacity"] = self._free_opacity(dens, logi, batch, device, generator)
+        if "before_opacity" in wanted:
+            made["before_opacity"] = self._before_opacity(dens, logi, batch, device, generator)
+        return made
 
     def volumes(self, density: torch.Tensor, logits: torch.Tensor, batch: dict, device):
         """Stacked per-frame volumes (density [N, X, Y, Z], logits [N, X, Y, Z, 17]) for the batch's rays."""
@@ -49,6 +102,14 @@ class LossComputer:
             dens = torch.where(temporal[:, None, None, None], disocclude(density, logits)[source], dens)
         return dens, logits[source]
 
+    def _free_opacity(self, dens, logi, batch: dict, device, generator) -> torch.Tensor:
+        """Opacity [F] of the batch's free rays (free-space beams, camera rays beyond the grid) through their
+        volumes; [0] when no sample of the batch found any (the dataset then leaves the free_* fields out)."""
+        if "free_origins" not in batch:
+            return torch.zeros(0, device=device)
+        return render_rays(dens, logi, batch["free_origins"].to(device), batch["free_directions"].to(device),
+                           self.render_cfg, generator=generator, batch_index=batch["free_volume"].to(device)).weight_sum
+
     def _before_opacity(self, dens, logi, batch: dict, device, generator) -> torch.Tensor:
         """Opacity [S] of the free stretches in front of the points of ``free_rays_per_step`` rays per sample (every
         k-th ray of the batch: the rays are drawn at random and stored sample by sample), each through its ray's
@@ -63,35 +124,3 @@ class LossComputer:
                           self.render_cfg, generator=generator, batch_index=batch["ray_volume"][keep].to(device),
                           far=ends.to(device))
         return out.weight_sum
-
-    def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None) -> dict:
-        cfg = self.cfg
-        density, logits = outputs["density"].float(), outputs["logits"].float()
-        inputs: dict = {}
-        if cfg.uses_2d:
-            dens, logi = self.volumes(density, logits, batch, device)
-            inputs.update(
-                rendered=render_rays(dens, logi, batch["ray_origins"].to(device), batch["ray_directions"].to(device),
-                                     self.render_cfg, generator=generator,
-                                     batch_index=batch["ray_volume"].to(device)),
-                depth_gt=batch["ray_depths"].to(device), labels_gt=batch["ray_labels"].to(device),
-                class_weights=None if self.class_weights is None else self.class_weights.to(device))
-            if "free_origins" in batch:  # free-space beams through the same per-frame volumes
-                free = render_rays(dens, logi, batch["free_origins"].to(device), batch["free_directions"].to(device),
-                                   self.render_cfg, generator=generator, batch_index=batch["free_volume"].to(device))
-                inputs["free_opacity"] = free.weight_sum
-            if cfg.free_before_point:
-                inputs["before_opacity"] = self._before_opacity(dens, logi, batch, device, generator)
-        if cfg.depth_loss:
-            inputs.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"],
-                          cam2ego=batch["cam2ego"].to(device), points_ego=[p.to(device) for p in batch["depth_points"]],
-                          depth_bin_centers=self.depth_bins.to(device))
-        if cfg.uses_3d:
-            # every voxel by default, as the official 3D training (use_mask=False); mask_camera only when asked
-            inputs.update(density=density, logits=logits, semantics_gt=batch["occ_semantics"].to(device),
-                          voxel_mask=batch["occ_mask"].to(device) if cfg.voxel_mask else None)
-        if self.loss_cfg.free_prior_weight > 0:
-            inputs["prior_density"] = density
-        terms = L.total_loss(self.loss_cfg, **inputs)
-        terms["loss"] = terms.pop("total")
-        return terms
