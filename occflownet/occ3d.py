@@ -22,6 +22,11 @@ class Grid:
     voxel_size: float = 0.4
     shape: tuple[int, int, int] = (200, 200, 16)
 
+    @property
+    def num_voxels(self) -> int:
+        """X·Y·Z: the rows of one flattened grid."""
+        return int(np.prod(self.shape))
+
     def centers(self, axis: int) -> np.ndarray:
         """Voxel centre coordinates along one axis, float64 [shape[axis]]."""
         return self.lower[axis] + (np.arange(self.shape[axis]) + 0.5) * self.voxel_size

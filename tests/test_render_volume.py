@@ -242,6 +242,30 @@ def test_batch_index_selects_the_volume():
     assert out.weight_sum[0] == 0 and out.weight_sum[1] > 0.99
 
 
+@pytest.mark.parametrize("lookup", ["numba", "grid_sample"])
+def test_shared_logits_render_as_their_copies(lookup):
+    """logits_index: three density volumes reading two logits volumes render the same values, and the shared
+    logits get the summed gradients of the copies, as rendering through logits[logits_index] copied."""
+    density, logits, origins, dirs, volume = _random_case(dtype=torch.float64)      # 2 volumes of each
+    density = torch.cat([density, density[:1] * 0.5])                               # a third density volume ...
+    volume = torch.remainder(torch.arange(len(volume)), 3)
+    index = torch.tensor([0, 1, 0])                                                  # ... reading logits volume 0
+    cfg = RenderConfig(far=12.0, grid=SMALL, lookup=lookup, density_scale=1.5)
+    results = []
+    for shared in (True, False):
+        d, lg = density.clone().requires_grad_(True), logits.clone().requires_grad_(True)
+        out = render_rays(d, lg if shared else lg[index], origins, dirs, cfg, torch.Generator().manual_seed(3),
+                          volume, logits_index=index if shared else None)
+        (out.depth.sum() + out.semantics.square().sum() + out.weight_sum.sum()).backward()
+        results.append((out.depth, out.semantics, out.weight_sum, d.grad, lg.grad))
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="logits_index"):
+        render_rays(density, logits, origins, dirs, cfg, batch_index=volume)         # 3 density, 2 logits volumes
+    with pytest.raises(ValueError, match="logits_index values"):
+        render_rays(density, logits, origins, dirs, cfg, batch_index=volume, logits_index=torch.tensor([0, 1, 2]))
+
+
 def test_bad_inputs_are_rejected_with_clear_errors():
     density, logits, origins, dirs, volume = _random_case(n_rays=5)
     cfg = RenderConfig(grid=SMALL)

@@ -12,7 +12,7 @@ import torch
 from occflownet.occ3d import NUM_CLASSES
 from occflownet.train.losses import (LossTerm, free_prior_loss, free_space_loss, lidar_depth_loss, lidar_depth_targets,
                                      loss_terms, normalized_semantics_loss, render_depth_loss, render_semantics_loss,
-                                     voxel_density_loss, voxel_semantics_loss)
+                                     voxel_density_loss, voxel_semantics_loss, voxel_targets)
 from occflownet.train.recipe import TrainConfig
 
 LOG17 = math.log(NUM_CLASSES)
@@ -100,24 +100,33 @@ def test_lidar_depth_loss_equals_hand_computed_bce():
 
 
 def test_voxel_losses_by_hand_with_mask():
-    density = torch.tensor([0.8, 0.3]).view(1, 2, 1, 1)
-    logits = torch.zeros(1, 2, 1, 1, NUM_CLASSES)
-    gt = torch.tensor([4, 17], dtype=torch.uint8).view(1, 2, 1, 1)
-    assert voxel_density_loss(density, gt).item() == pytest.approx(-(math.log(0.8) + math.log(0.7)) / 2, rel=1e-6)
-    assert voxel_semantics_loss(logits, gt).item() == pytest.approx(LOG17, rel=1e-6)
-    mask = torch.tensor([False, True]).view(1, 2, 1, 1)
-    assert voxel_density_loss(density, gt, mask).item() == pytest.approx(-math.log(0.7), rel=1e-6)
-    assert voxel_semantics_loss(logits, gt, mask).item() == 0
+    density = torch.tensor([0.8, 0.3])
+    logits = torch.zeros(2, NUM_CLASSES)
+    gt = torch.tensor([4, 17], dtype=torch.uint8).view(2, 1, 1)
+    every = voxel_targets(gt)                                    # every voxel kept (the official 3D training)
+    assert "voxel_rows" not in every and every["voxel_occupied"].tolist() == [1.0, 0.0]
+    assert every["occupied_rows"].tolist() == [0] and every["occupied_labels"].tolist() == [4]
+    assert voxel_density_loss(density, every["voxel_occupied"]).item() == pytest.approx(
+        -(math.log(0.8) + math.log(0.7)) / 2, rel=1e-6)
+    assert voxel_semantics_loss(logits[every["occupied_rows"]], every["occupied_labels"]).item() == \
+        pytest.approx(LOG17, rel=1e-6)
+    mask = torch.tensor([False, True]).view(2, 1, 1)
+    masked = voxel_targets(gt, mask)                             # --voxel-mask: only the second voxel is kept
+    assert masked["voxel_rows"].tolist() == [1] and masked["voxel_occupied"].tolist() == [0.0]
+    assert masked["occupied_rows"].numel() == 0 and masked["occupied_labels"].numel() == 0
+    assert voxel_density_loss(density[masked["voxel_rows"]], masked["voxel_occupied"]).item() == \
+        pytest.approx(-math.log(0.7), rel=1e-6)
+    assert voxel_semantics_loss(logits[masked["occupied_rows"]], masked["occupied_labels"]).item() == 0
     with pytest.raises(ValueError, match="semantics_gt"):
-        voxel_density_loss(density, torch.full((1, 2, 1, 1), 18))
+        voxel_targets(torch.full((2, 1, 1), 18))
+    with pytest.raises(ValueError, match="mask"):
+        voxel_targets(gt, mask.view(1, 2, 1))
     with pytest.raises(ValueError, match="logits"):
-        voxel_semantics_loss(logits[..., :3], gt)
-    # --voxel-mask: both terms also need the mask, and apply it
-    inputs = {"density": density, "logits": logits, "occ_semantics": gt, "occ_mask": mask}
-    masked = {t.name: t for t in loss_terms(TrainConfig(supervision="3d", voxel_mask=True))}
-    assert masked["voxel_density"].needs == ("density", "occ_semantics", "occ_mask")
-    assert masked["voxel_density"](inputs).item() == pytest.approx(-math.log(0.7), rel=1e-6)
-    assert _term(TrainConfig(supervision="3d"), "voxel_density").needs == ("density", "occ_semantics")
+        voxel_semantics_loss(logits[:, :3], every["occupied_labels"])
+    # the terms read σ and the logits at the supervised voxels, and their targets
+    assert _term(TrainConfig(supervision="3d"), "voxel_density").needs == ("voxel_sigma", "voxel_occupied")
+    assert _term(TrainConfig(supervision="3d", voxel_mask=True), "voxel_semantics").needs == \
+        ("occupied_logits", "occupied_labels")
 
 
 @pytest.mark.parametrize("overrides, names", [
@@ -202,17 +211,50 @@ def test_the_loss_computer_computes_only_the_inputs_its_terms_need():
     losses = _computer(supervision="3d", depth_loss=False, free_prior_weight=0.1)
     density = torch.tensor([0.8, 0.3]).view(1, 2, 1, 1)
     outputs = {"density": density, "logits": torch.zeros(1, 2, 1, 1, NUM_CLASSES)}
-    batch = {"occ_semantics": torch.tensor([4, 17], dtype=torch.uint8).view(1, 2, 1, 1)}
-    assert losses.needs == {"density", "logits", "occ_semantics"}
+    batch = voxel_targets(torch.tensor([4, 17], dtype=torch.uint8).view(2, 1, 1))
+    assert losses.needs == {"density", "voxel_sigma", "voxel_occupied", "occupied_logits", "occupied_labels"}
+    assert not losses.heads_at_rows and losses.head_rows(batch, torch.device("cpu")) == {}  # the prior reads all
     assert not set(losses.inputs(outputs, batch, torch.device("cpu"))) & {"rendered", "free_opacity", "depth_prob"}
     terms = {k: float(v) for k, v in losses(outputs, batch, torch.device("cpu")).items()}
     bce = -(math.log(0.8) + math.log(0.7)) / 2
     prior = 0.1 * -(math.log(0.2) + math.log(0.7)) / 2
     assert terms == pytest.approx({"voxel_density": bce, "voxel_semantics": LOG17, "free_prior": prior,
                                    "loss": bce + LOG17 + prior}, rel=1e-6)
-    lacking = r"\['voxel_density', 'voxel_semantics'\] need the batch fields \['occ_mask'\]"
+    lacking = r"\['voxel_semantics'\] need the batch fields \['occupied_labels'\]"
     with pytest.raises(ValueError, match=lacking):
-        _computer(supervision="3d", depth_loss=False, voxel_mask=True)(outputs, batch, torch.device("cpu"))
+        losses(outputs, {k: v for k, v in batch.items() if k != "occupied_labels"}, torch.device("cpu"))
+
+
+def test_3d_labels_alone_run_the_heads_on_the_supervised_voxels_only():
+    """Without rendering or prior, the loss computer asks the model for σ at the kept voxels and the logits at the
+    kept occupied ones (head_rows), and takes the outputs at those rows as they come: the same terms as picking
+    them from the whole grid."""
+    losses = _computer(supervision="3d", depth_loss=False, voxel_mask=True)
+    cpu = torch.device("cpu")
+    g = torch.Generator().manual_seed(0)
+    semantics = torch.randint(0, 18, (2, 3, 4, 5), generator=g, dtype=torch.uint8)
+    mask = torch.rand(2, 3, 4, 5, generator=g) > 0.4
+    per_sample = [voxel_targets(semantics[b], mask[b]) for b in range(2)]
+    batch = {"voxel_rows": torch.cat([t["voxel_rows"] + 60 * b for b, t in enumerate(per_sample)]),
+             "occupied_rows": torch.cat([t["occupied_rows"] + 60 * b for b, t in enumerate(per_sample)]),
+             "voxel_occupied": torch.cat([t["voxel_occupied"] for t in per_sample]),
+             "occupied_labels": torch.cat([t["occupied_labels"] for t in per_sample])}
+    assert losses.heads_at_rows
+    rows = losses.head_rows(batch, cpu)
+    assert torch.equal(rows["density_at"], batch["voxel_rows"]) and torch.equal(rows["logits_at"],
+                                                                                   batch["occupied_rows"])
+    density = torch.rand(2, 3, 4, 5, generator=g)
+    logits = torch.randn(2, 3, 4, 5, NUM_CLASSES, generator=g)
+    whole = losses({"density": density, "logits": logits}, batch, cpu)
+    at_rows = losses({"density": density.reshape(-1)[rows["density_at"]],
+                      "logits": logits.reshape(-1, NUM_CLASSES)[rows["logits_at"]]}, batch, cpu)
+    occupied = semantics != 17
+    expected = {"voxel_density": torch.nn.functional.binary_cross_entropy(density[mask], occupied[mask].float()),
+                "voxel_semantics": torch.nn.functional.cross_entropy(logits[mask & occupied],
+                                                                      semantics[mask & occupied].long())}
+    for terms in (whole, at_rows):
+        for name, value in expected.items():
+            assert float(terms[name]) == pytest.approx(float(value), rel=1e-6)
 
 
 def _ray_batch() -> dict:

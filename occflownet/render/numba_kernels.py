@@ -4,8 +4,9 @@ backward, one ray per loop iteration. Pure numpy in, numpy out; ``numba_render``
 Same mathematics as ``volume_render`` (see its docstring; the tests compare values and gradients against the
 ``grid_sample`` reference path):
 
-- grid: voxel (i, j, k) of volume v is element ``((v * X + i) * Y + j) * Z + k`` of the flat σ array and row of
-  the logits table [n * X * Y * Z, C]; continuous index ``u = (p - lower) / voxel_size - 0.5`` (voxel centres at
+- grid: voxel (i, j, k) of volume v is element ``((v * X + i) * Y + j) * Z + k`` of the flat σ array, and of
+  logits volume u (each ray names its own, ``ray_logits``: several σ volumes may share one) row
+  ``((u * X + i) * Y + j) * Z + k`` of the logits table [m * X * Y * Z, C]; continuous index ``u = (p - lower) / voxel_size - 0.5`` (voxel centres at
   integers); trilinear between the 8 centres around u; corners outside the grid read zero;
 - per ray: coarse σ at the midpoints of the jittered bins ``edges`` → CDF ``1 - T`` at the edges, 1 at the last
   (the official distribution; optionally
@@ -84,17 +85,18 @@ def _sigma_at(sigma, vol, px, py, pz, lower, inv_voxel, shape, rows, cw):
 
 
 @njit(cache=True)
-def _add_cell_semantics(rows, acc, sem, logits):
-    """A ray leaves a cell: add Σ_k acc_k · logits[rows_k] to the semantics ``sem`` [C] (corners outside: -1)."""
+def _add_cell_semantics(rows, acc, sem, logits, shift):
+    """A ray leaves a cell: add Σ_k acc_k · logits[rows_k + shift] to the semantics ``sem`` [C] (corners outside:
+    -1; ``shift`` moves a σ row to the ray's logits volume)."""
     for c in range(8):
         if rows[c] >= 0 and acc[c] != 0.0:
             for ch in range(sem.shape[0]):
-                sem[ch] += acc[c] * logits[rows[c], ch]
+                sem[ch] += acc[c] * logits[rows[c] + shift, ch]
 
 
 @njit(cache=True)
-def _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits):
-    """A ray leaves a cell: add acc_s_k to grad_sigma[rows_k] and acc_w_k · g to grad_logits[rows_k] (either
+def _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits, shift):
+    """A ray leaves a cell: add acc_s_k to grad_sigma[rows_k] and acc_w_k · g to grad_logits[rows_k + shift] (either
     table may be empty: not needed). Corners with row -1 are skipped."""
     for c in range(8):
         row = rows[c]
@@ -103,17 +105,18 @@ def _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits):
                 grad_sigma[row] += acc_s[c]
             if grad_logits.shape[0] > 0 and acc_w[c] != 0.0:
                 for ch in range(g.shape[0]):
-                    grad_logits[row, ch] += acc_w[c] * g[ch]
+                    grad_logits[row + shift, ch] += acc_w[c] * g[ch]
 
 
 @njit(parallel=True, cache=True)
-def render_forward(sigma, logits, origins, directions, edges, ray_volume, order, bias, lower, voxel_size, shape,
-                   near, far, scale, uniform_mix, depth, semantics, weight_sum, weights, sigma_out, t_out,
+def render_forward(sigma, logits, origins, directions, edges, ray_volume, ray_logits, order, bias, lower, voxel_size,
+                   shape, near, far, scale, uniform_mix, depth, semantics, weight_sum, weights, sigma_out, t_out,
                    a_out, b_out):
     """Render every ray (see module docstring).
 
-    In: sigma [n·X·Y·Z] (flat σ volumes), logits [n·X·Y·Z, C], origins/directions [R, 3] (ego frame of the grid,
-    unit directions; float64), edges [R, M + 1] coarse bin edges (float64), ray_volume [R] int64, order [R] int64,
+    In: sigma [n·X·Y·Z] (flat σ volumes), logits [m·X·Y·Z, C] (flat logits volumes), origins/directions [R, 3]
+    (ego frame of the grid, unit directions; float64), edges [R, M + 1] coarse bin edges (float64), ray_volume [R]
+    int64 (the σ volume of each ray), ray_logits [R] int64 (its logits volume), order [R] int64,
     bias [R] fine-draw offsets (0.5 = mid-bin), lower [3], voxel_size, shape [3] int64, near (scalar), far [R]
     (each ray's far end, float64; the last coarse edge). Out (written): depth [R], semantics [R, C], weight_sum [R], weights/sigma_out/t_out/a_out/b_out [R, N].
     The draws and intervals are computed in float64; the fine pass then reads the *stored* t, a, b (the output
@@ -132,6 +135,7 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
         ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
         dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
         vol = ray_volume[r]
+        shift = (ray_logits[r] - vol) * shape[0] * shape[1] * shape[2]
         # coarse pass: CDF = 1 - T at the first M edges and 1 at the last (the official distribution: the light
         # that passes through every bin is drawn in the last one; sampling.cdf_from_sigma)
         cdf[0] = 0.0
@@ -174,7 +178,7 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
             t = t_out[r, i]
             i0, j0, k0, fx, fy, fz = _cell(ox + t * dx, oy + t * dy, oz + t * dz, lower, inv_voxel, shape)
             if not (i0 == ci and j0 == cj and k0 == ck):
-                _add_cell_semantics(rows, acc, sem, logits)
+                _add_cell_semantics(rows, acc, sem, logits, shift)
                 ci, cj, ck = i0, j0, k0
                 _corners(vol, ci, cj, ck, shape, rows)
                 acc[:] = 0.0
@@ -193,7 +197,7 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
             wsum += w
             weights[r, i] = w
             sigma_out[r, i] = s
-        _add_cell_semantics(rows, acc, sem, logits)
+        _add_cell_semantics(rows, acc, sem, logits, shift)
         depth[r] = dep
         weight_sum[r] = wsum
         for ch in range(channels):
@@ -201,8 +205,8 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, order,
 
 
 @njit(parallel=True, cache=True)
-def sigma_sample_grads(logits, origins, directions, ray_volume, order, lower, voxel_size, shape, scale, weights,
-                       sigma_s, t_s, a_s, b_s, g_depth, g_sem, g_wsum, g_sigma_s):
+def sigma_sample_grads(logits, origins, directions, ray_volume, ray_logits, order, lower, voxel_size, shape, scale,
+                       weights, sigma_s, t_s, a_s, b_s, g_depth, g_sem, g_wsum, g_sigma_s):
     """∂L/∂σ_i for every fine sample → g_sigma_s [R, N] (written). Rays in parallel (in ``order``); reads only.
 
     weights, sigma_s, t_s, a_s, b_s [R, N] from ``render_forward``; g_depth [R], g_sem [R, C], g_wsum [R].
@@ -218,6 +222,7 @@ def sigma_sample_grads(logits, origins, directions, ray_volume, order, lower, vo
         ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
         dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
         vol = ray_volume[r]
+        shift = (ray_logits[r] - vol) * shape[0] * shape[1] * shape[2]
         ci = cj = ck = -(1 << 30)
         total = 0.0
         for i in range(n_fine):
@@ -230,7 +235,7 @@ def sigma_sample_grads(logits, origins, directions, ray_volume, order, lower, vo
                     acc = 0.0
                     if rows[c] >= 0:
                         for ch in range(channels):
-                            acc += g_sem[r, ch] * logits[rows[c], ch]
+                            acc += g_sem[r, ch] * logits[rows[c] + shift, ch]
                     q[c] = acc
             _corner_weights(fx, fy, fz, cw)
             sem_dot = 0.0
@@ -251,9 +256,9 @@ def sigma_sample_grads(logits, origins, directions, ray_volume, order, lower, vo
 
 
 @njit(parallel=True, cache=True)
-def scatter_grads(origins, directions, ray_volume, order, lower, voxel_size, shape, weights, t_s, g_sigma_s, g_sem,
-                  n_groups, grad_sigma, grad_logits):
-    """Accumulate ∂L/∂σ into grad_sigma [n·X·Y·Z] and ∂L/∂logits into grad_logits [n·X·Y·Z, C] (both added to).
+def scatter_grads(origins, directions, ray_volume, ray_logits, order, lower, voxel_size, shape, weights, t_s,
+                  g_sigma_s, g_sem, n_groups, grad_sigma, grad_logits):
+    """Accumulate ∂L/∂σ into grad_sigma [n·X·Y·Z] and ∂L/∂logits into grad_logits [m·X·Y·Z, C] (both added to).
 
     Parallel over ``n_groups`` owners of voxel slabs: group g writes only voxels whose x index i has
     ``(i // 8) % n_groups == g``, so no two threads write the same element and the result does not depend on the
@@ -273,6 +278,7 @@ def scatter_grads(origins, directions, ray_volume, order, lower, voxel_size, sha
             ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
             dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
             vol = ray_volume[r]
+            shift = (ray_logits[r] - vol) * shape[0] * shape[1] * shape[2]
             ci = cj = ck = -(1 << 30)
             rows[:] = -1
             owned = False
@@ -281,7 +287,7 @@ def scatter_grads(origins, directions, ray_volume, order, lower, voxel_size, sha
                 i0, j0, k0, fx, fy, fz = _cell(ox + t * dx, oy + t * dy, oz + t * dz, lower, inv_voxel, shape)
                 if not (i0 == ci and j0 == cj and k0 == ck):
                     if owned:
-                        _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits)
+                        _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits, shift)
                     ci, cj, ck = i0, j0, k0
                     _corners(vol, ci, cj, ck, shape, rows)
                     owned = False
@@ -298,4 +304,4 @@ def scatter_grads(origins, directions, ray_volume, order, lower, voxel_size, sha
                         acc_w[c] += w * cw[c]
                         acc_s[c] += gs * cw[c]
             if owned:
-                _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits)
+                _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits, shift)

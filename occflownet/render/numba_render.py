@@ -1,9 +1,10 @@
 """The fast CPU rendering path: ``numba_kernels`` wrapped as a ``torch.autograd.Function``.
 
-``NumbaRender.apply(density, logits_flat, origins, directions, edges, ray_volume, bias, far, cfg)``:
-density [n, X, Y, Z] (σ), logits_flat [n·X·Y·Z, C] (channels-last logits, flattened), origins/directions [R, 3]
-(ego frame of ``cfg.grid``), edges [R, M + 1] jittered coarse edges, ray_volume [R] long, bias [R] fine-draw
-offsets → depth [R], semantics [R, C], weight_sum [R] (differentiable in density and logits), then weights,
+``NumbaRender.apply(density, logits_flat, origins, directions, edges, ray_volume, ray_logits, bias, far, cfg)``:
+density [n, X, Y, Z] (σ), logits_flat [m·X·Y·Z, C] (channels-last logits, flattened), origins/directions [R, 3]
+(ego frame of ``cfg.grid``), edges [R, M + 1] jittered coarse edges, ray_volume [R] long (σ volume), ray_logits
+[R] long (logits volume), bias [R] fine-draw offsets → depth [R], semantics [R, C], weight_sum [R] (differentiable
+in density and logits), then weights,
 sigma, t_samples, t_starts, t_ends [R, N] (not differentiable). CPU tensors only; float32 or float64.
 
 ``cfg.threads`` numba threads (0: numba's default, all cores). The kernels parallelise over rays (forward, σ
@@ -63,7 +64,7 @@ def cache_friendly_order(origins: torch.Tensor, directions: torch.Tensor, ray_vo
 class NumbaRender(torch.autograd.Function):
 
     @staticmethod
-    def forward(ctx, density, logits_flat, origins, directions, edges, ray_volume, bias, far, cfg):
+    def forward(ctx, density, logits_flat, origins, directions, edges, ray_volume, ray_logits, bias, far, cfg):
         n_rays, n_fine, channels = origins.shape[0], cfg.n_fine, logits_flat.shape[1]
         new = origins.new_empty
         depth, semantics, weight_sum = new(n_rays), new(n_rays, channels), new(n_rays)
@@ -71,19 +72,19 @@ class NumbaRender(torch.autograd.Function):
         order = cache_friendly_order(origins, directions, ray_volume)
         arrays = [_np(density.reshape(-1)), _np(logits_flat)] + [_f64(x) for x in (origins, directions, edges)]
         with numba_threads(cfg.threads):
-            kernels.render_forward(*arrays, _np(ray_volume), order, _f64(bias), *_grid_args(cfg.grid),
+            kernels.render_forward(*arrays, _np(ray_volume), _np(ray_logits), order, _f64(bias), *_grid_args(cfg.grid),
                                    float(cfg.near), _f64(far), float(cfg.density_scale), float(cfg.uniform_mix),
                                    *(x.numpy() for x in (depth, semantics, weight_sum, weights, sigma, t, a, b)))
         ctx.cfg = cfg
         ctx.order = order
         ctx.density_shape = density.shape
-        ctx.save_for_backward(logits_flat, origins, directions, ray_volume, weights, sigma, t, a, b)
+        ctx.save_for_backward(logits_flat, origins, directions, ray_volume, ray_logits, weights, sigma, t, a, b)
         ctx.mark_non_differentiable(weights, sigma, t, a, b)
         return depth, semantics, weight_sum, weights, sigma, t, a, b
 
     @staticmethod
     def backward(ctx, g_depth, g_sem, g_wsum, *_unused):
-        logits_flat, origins, directions, ray_volume, weights, sigma, t, a, b = ctx.saved_tensors
+        logits_flat, origins, directions, ray_volume, ray_logits, weights, sigma, t, a, b = ctx.saved_tensors
         cfg = ctx.cfg
         need_sigma, need_logits = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         n_rays, channels = origins.shape[0], logits_flat.shape[1]
@@ -91,7 +92,7 @@ class NumbaRender(torch.autograd.Function):
         g_sem = weights.new_zeros(n_rays, channels) if g_sem is None else g_sem
         g_wsum = weights.new_zeros(n_rays) if g_wsum is None else g_wsum
         lower, voxel_size, shape = _grid_args(cfg.grid)
-        geometry = [_f64(origins), _f64(directions), _np(ray_volume), ctx.order]
+        geometry = [_f64(origins), _f64(directions), _np(ray_volume), _np(ray_logits), ctx.order]
         grad_sigma = (weights.new_zeros(ctx.density_shape) if need_sigma else weights.new_zeros(0))
         grad_logits = (torch.zeros_like(logits_flat) if need_logits else weights.new_zeros(0, channels))
         g_sigma_s = torch.zeros_like(weights)
@@ -102,4 +103,4 @@ class NumbaRender(torch.autograd.Function):
                                            _np(g_depth), _np(g_sem), _np(g_wsum), g_sigma_s.numpy())
             kernels.scatter_grads(*geometry, lower, voxel_size, shape, _np(weights), _np(t), g_sigma_s.numpy(),
                                   _np(g_sem), threads, grad_sigma.view(-1).numpy(), grad_logits.numpy())
-        return (grad_sigma if need_sigma else None, grad_logits if need_logits else None) + (None,) * 7
+        return (grad_sigma if need_sigma else None, grad_logits if need_logits else None) + (None,) * 8

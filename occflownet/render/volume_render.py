@@ -6,7 +6,10 @@ Inputs (one call renders a batch of rays through a batch of volumes):
 - ``logits``: float [B, X, Y, Z, C] (or [X, Y, Z, C]) channels-last semantic logits (C = 17);
 - ``origins``, ``directions``: float [R, 3] in the same ego frame; directions unit length;
 - ``batch_index``: long [R] choosing the volume of each ray (needed when B > 1; the flow code passes a stacked
-  [B·T, ...] volume and picks the copy per ray).
+  [B·T, ...] volume and picks the copy per ray);
+- ``logits_index``: long [B] (optional): the logits volume of each density volume, so that several density volumes
+  (a frame's disoccluded copy beside the prediction) read one logits volume [B_l, X, Y, Z, C] without copying it;
+  default: logits volume b for density volume b.
 
 Method (paper section 3.4 and the official code):
 1. coarse: ``n_coarse`` jittered uniform bins in [near, far]; σ looked up trilinearly (no gradient: the coarse
@@ -120,6 +123,20 @@ def weights_from_density(sigma: torch.Tensor, t_starts: torch.Tensor, t_ends: to
     return transmittance * alpha, transmittance, alpha
 
 
+def _check_logits_index(logits_index, n_density: int, n_logits: int, device) -> torch.Tensor:
+    """logits_index long [n_density] (None: 0..n-1, which needs as many logits volumes as density volumes)."""
+    if logits_index is None:
+        if n_logits != n_density:
+            raise ValueError(f"logits hold {n_logits} volumes for {n_density} density volumes: pass logits_index")
+        return torch.arange(n_density, device=device)
+    if logits_index.shape != (n_density,) or logits_index.dtype.is_floating_point or logits_index.dtype == torch.bool:
+        raise ValueError(f"logits_index must be an integer [{n_density}], got {logits_index.dtype} "
+                         f"{tuple(logits_index.shape)}")
+    if int(logits_index.min()) < 0 or int(logits_index.max()) >= n_logits:
+        raise ValueError(f"logits_index values must lie in [0, {n_logits})")
+    return logits_index.long().to(device)
+
+
 def _check_inputs(density, logits, origins, directions, batch_index, grid: Grid):
     if density.dim() == 3:
         density = density.unsqueeze(0)
@@ -127,8 +144,8 @@ def _check_inputs(density, logits, origins, directions, batch_index, grid: Grid)
         logits = logits.unsqueeze(0)
     if density.dim() != 4 or tuple(density.shape[1:]) != tuple(grid.shape):
         raise ValueError(f"density must be [B, {', '.join(map(str, grid.shape))}], got {tuple(density.shape)}")
-    if logits.dim() != 5 or tuple(logits.shape[:4]) != tuple(density.shape):
-        raise ValueError(f"logits must be [B, X, Y, Z, C] matching density {tuple(density.shape)}, "
+    if logits.dim() != 5 or tuple(logits.shape[1:4]) != tuple(density.shape[1:]):
+        raise ValueError(f"logits must be [B, X, Y, Z, C] on density's grid {tuple(density.shape[1:])}, "
                          f"got {tuple(logits.shape)}")
     if origins.dim() != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
         raise ValueError(f"origins and directions must both be [R, 3], got {tuple(origins.shape)} and "
@@ -173,16 +190,19 @@ def _use_numba(lookup: str, device: torch.device) -> bool:
 
 def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor,
                 cfg: RenderConfig = RenderConfig(), generator: torch.Generator | None = None,
-                batch_index: torch.Tensor | None = None, far: torch.Tensor | None = None) -> RenderOutput:
+                batch_index: torch.Tensor | None = None, far: torch.Tensor | None = None,
+                logits_index: torch.Tensor | None = None) -> RenderOutput:
     """Render depth and semantic logits for R rays through the voxel volume(s); see the module docstring.
 
-    density [B, X, Y, Z] or [X, Y, Z]; logits [B, X, Y, Z, C] or [X, Y, Z, C]; origins, directions [R, 3]
-    (ego frame, unit directions); batch_index [R] long (required when B > 1); far [R] (metres, > ``cfg.near``):
+    density [B, X, Y, Z] or [X, Y, Z]; logits [B_l, X, Y, Z, C] or [X, Y, Z, C]; origins, directions [R, 3]
+    (ego frame, unit directions); batch_index [R] long (required when B > 1); logits_index [B] long (the logits
+    volume of each density volume; None: the same index, B_l = B); far [R] (metres, > ``cfg.near``):
     each ray's own far end instead of ``cfg.far`` (a segment: its weight sum is the opacity up to there).
     ``generator`` drives the coarse jitter (and stratified fine draws) for reproducible sampling.
     """
     grid = cfg.grid
     density, logits, batch_index = _check_inputs(density, logits, origins, directions, batch_index, grid)
+    logits_index = _check_logits_index(logits_index, density.shape[0], logits.shape[0], density.device)
     if cfg.sigma_is == "opacity":
         density = opacity_to_extinction(density, grid.voxel_size)
     n_rays, channels = origins.shape[0], logits.shape[-1]
@@ -201,8 +221,8 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
         else:
             bias = torch.full((n_rays,), 0.5, device=device, dtype=dtype)
         depth, semantics, weight_sum, weights, sigma, t_samples, t_starts, t_ends = NumbaRender.apply(
-            density, logits.reshape(-1, channels), origins, directions, edges, batch_index, bias,
-            torch.full((n_rays,), float(cfg.far), dtype=torch.float64) if far is None else far, cfg)
+            density, logits.reshape(-1, channels), origins, directions, edges, batch_index, logits_index[batch_index],
+            bias, torch.full((n_rays,), float(cfg.far), dtype=torch.float64) if far is None else far, cfg)
         return RenderOutput(depth=depth, semantics=semantics, weight_sum=weight_sum, weights=weights, sigma=sigma,
                             t_samples=t_samples, t_starts=t_starts, t_ends=t_ends)
 
@@ -216,7 +236,7 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
                                       generator=generator)
         t_starts, t_ends = intervals_from_samples(t_samples, cfg.near, cfg.far if far is None else far[:, None])
         points = origins[:, None, :] + t_samples[..., None] * directions[:, None, :]
-    volume = torch.cat([density.unsqueeze(-1), logits], dim=-1)
+    volume = torch.cat([density.unsqueeze(-1), logits[logits_index]], dim=-1)
     values = grid_sample_lookup(volume, points, batch_index, grid)
     sigma = values[..., 0]
     weights, _, _ = weights_from_density(cfg.density_scale * sigma, t_starts, t_ends)

@@ -22,6 +22,7 @@ from occflownet.data.free_space import FreeSpaceConfig
 from occflownet.data.rays import RayBuilder, RayConfig, sample_rays
 from occflownet.geometry import invert, transform_points
 from occflownet.occ3d import GRID
+from occflownet.train.losses import voxel_targets
 from occflownet.train.recipe import TrainConfig
 
 MAX_DEPTH_POINTS = 40000  # LiDAR points per sample kept for the LSS depth loss
@@ -94,6 +95,7 @@ class TrainingSamples(Dataset):
             occ = load_occupancy(self.dataroot, sample.occupancy_path)
             item["occ_semantics"] = torch.from_numpy(occ.semantics)                       # uint8 [200, 200, 16]
             item["occ_mask"] = torch.from_numpy(occ.mask_camera.astype(bool))
+            item.update(voxel_targets(item["occ_semantics"], item["occ_mask"] if self.cfg.voxel_mask else None))
         return item
 
     def _volume_of(self, time_offsets: np.ndarray, frames: list[int]) -> np.ndarray:
@@ -134,6 +136,12 @@ def collate(items: list[dict]) -> dict:
             out[key] = torch.stack([it[key] for it in items])
     if "depth_points" in items[0]:
         out["depth_points"] = [it["depth_points"] for it in items]
+    for key in ("voxel_rows", "occupied_rows"):      # rows of each sample's grid → rows of the batch's [B·X·Y·Z]
+        if key in items[0]:
+            out[key] = torch.cat([it[key] + b * GRID.num_voxels for b, it in enumerate(items)])
+    for key in ("voxel_occupied", "occupied_labels"):
+        if key in items[0]:
+            out[key] = torch.cat([it[key] for it in items])
     if "ray_origins" in items[0]:
         offsets = np.cumsum([0] + [it["num_volumes"] for it in items[:-1]])
         for key in ("ray_origins", "ray_directions", "ray_depths", "ray_labels"):

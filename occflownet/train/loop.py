@@ -208,12 +208,14 @@ def train_step(state: TrainingState, net, losses: LossComputer, batch: dict, dev
     """One optimisation step; ``state.step`` += 1.
 
     ``batch``: from :func:`collate` (images uint8 [B, 6, H, W, 3], intrinsics [B, 6, 3, 3], cam2ego [B, 6, 4, 4]
-    camera → current ego, rays and labels in the current ego frame). ``net``: ``state.model`` or its DDP wrapper.
+    camera → current ego, rays and labels in the current ego frame). ``net``: ``state.model`` or its DDP wrapper; its
+    heads run on the voxels the losses read only when no term needs the whole grid (``LossComputer.head_rows``).
     ``generator``: the render jitter of this step. Forward under autocast(``amp_dtype``) when given, losses (a
     non-finite loss raises TrainingError), backward, grad-norm clip, AdamW and schedule step, EMA update.
     → (loss terms {name: scalar tensor, "loss": total}, grad norm before clipping)."""
     with torch.autocast(device.type, dtype=amp_dtype, enabled=amp_dtype is not None):
-        outputs = net(batch["images"].to(device), batch["intrinsics"].to(device), batch["cam2ego"].to(device))
+        outputs = net(batch["images"].to(device), batch["intrinsics"].to(device), batch["cam2ego"].to(device),
+                      **losses.head_rows(batch, device))
     terms = losses(outputs, batch, device, generator)
     _stop_if_not_finite(terms, state.step, last_checkpoint(state.cfg.out))
     state.optimizer.zero_grad(set_to_none=True)

@@ -3,8 +3,9 @@
 :func:`loss_terms` reads the configuration and returns the run's terms, each a :class:`LossTerm`: the name the
 training log uses, its weight, the inputs it needs, and the unweighted function of those inputs. The inputs are named
 as :class:`occflownet.train.step.LossComputer` provides them (it computes only those its terms name): batch fields
-(``ray_depths``, ``ray_labels``, ``cam2ego``, ``depth_points``, ``occ_semantics``, ``occ_mask``), model outputs
-(``density``, ``logits``, ``depth_prob``, ``feature_intrinsics``), renderings through the per-frame volumes
+(``ray_depths``, ``ray_labels``, ``cam2ego``, ``depth_points``, and :func:`voxel_targets`' ``voxel_occupied``,
+``occupied_labels``), model outputs (``density``, ``logits``, ``depth_prob``, ``feature_intrinsics``; ``voxel_sigma``
+and ``occupied_logits``: σ and the logits at the supervised voxels), renderings through the per-frame volumes
 (``rendered``, the ``RenderOutput`` of the batch's rays; ``free_opacity``; ``before_opacity``) and constants
 (``class_weights``, ``depth_bins``). The loss is the sum of the weighted terms, in this order:
 
@@ -18,7 +19,7 @@ as :class:`occflownet.train.step.LossComputer` provides them (it computes only t
   opacity grows anywhere along it, which rewards density in front of the surface;
 - "voxel_density", "voxel_semantics" (3D supervision, paper section 3.3): BCE on σ over all voxels (target
   occupied = label != 17) and CE on the semantic logits of the occupied voxels, weight 1.0 each; with
-  ``voxel_mask`` both only inside ``mask_camera``;
+  ``voxel_mask`` both only inside ``mask_camera`` (:func:`voxel_targets` says which voxels);
 - "lidar_depth" (``depth_loss``; BEVDepth/BEVDet ``get_depth_loss``): the LiDAR points of the current frame are
   projected into the feature map of every camera; each feature pixel that receives points gets the one-hot of the
   depth bin nearest to its *closest* point; BCE between the predicted depth distribution and that one-hot, summed
@@ -65,7 +66,6 @@ class LossTerm:
 def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
     """The terms of a run (see the module docstring), in the order the log lists them and the loss sums them."""
     rays = ("rendered", "ray_depths", "ray_labels", "class_weights")
-    voxels = ("occ_semantics", "occ_mask") if cfg.voxel_mask else ("occ_semantics",)
     terms = []
     if cfg.uses_2d:
         semantics = normalized_semantics_loss if cfg.render_semantics == "normalized" else render_semantics_loss
@@ -74,8 +74,9 @@ def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
                   LossTerm("render_semantics", SEMANTIC_WEIGHT, ("rendered", "ray_labels", "class_weights"),
                            semantics)]
     if cfg.uses_3d:
-        terms += [LossTerm("voxel_density", VOXEL_WEIGHT, ("density", *voxels), voxel_density_loss),
-                  LossTerm("voxel_semantics", VOXEL_WEIGHT, ("logits", *voxels), voxel_semantics_loss)]
+        terms += [LossTerm("voxel_density", VOXEL_WEIGHT, ("voxel_sigma", "voxel_occupied"), voxel_density_loss),
+                  LossTerm("voxel_semantics", VOXEL_WEIGHT, ("occupied_logits", "occupied_labels"),
+                           voxel_semantics_loss)]
     if cfg.depth_loss:
         terms.append(LossTerm("lidar_depth", LIDAR_DEPTH_WEIGHT,
                               ("depth_prob", "feature_intrinsics", "cam2ego", "depth_points", "depth_bins"),
@@ -176,47 +177,57 @@ def free_prior_loss(density: torch.Tensor) -> torch.Tensor:
         return free_space_loss(density.float().reshape(-1))
 
 
-def _voxel_labels(volume: torch.Tensor, semantics_gt: torch.Tensor, mask: torch.Tensor | None):
-    """(labels long [B, X, Y, Z], occupied bool, kept bool: ``mask`` or every voxel), checked against the shape
-    of ``volume`` (density [B, X, Y, Z] or logits [B, X, Y, Z, 17])."""
-    shape = volume.shape[:4]
-    if semantics_gt.shape != shape:
-        raise ValueError(f"semantics_gt must be {tuple(shape)}, got {tuple(semantics_gt.shape)}")
-    labels = semantics_gt.long()
+def voxel_targets(semantics_gt: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """What the 3D terms supervise in one sample, as rows of its flattened grid [X·Y·Z] (row = (x·Y + y)·Z + z,
+    grid layout, ego frame): semantics_gt uint8/long [X, Y, Z] (17 = free); mask bool [X, Y, Z] (``mask_camera``,
+    with ``voxel_mask``) or None (every voxel, as the official 3D training) →
+
+    - "voxel_rows" int64 [K]: the kept voxels (only with a mask; without one every voxel is kept, in row order);
+    - "voxel_occupied" float32 [K] (or [X·Y·Z]): the density BCE's targets, 1 where the label is occupied;
+    - "occupied_rows" int64 [K'], "occupied_labels" int64 [K']: the kept occupied voxels and their classes.
+
+    The data loader adds them to each 3D sample (``occflownet.train.dataset``; ``collate`` offsets the rows by the
+    sample's place in the batch), so the model's heads can run on those rows only
+    (``OccupancyModel.forward(density_at=, logits_at=)``)."""
+    if semantics_gt.dim() != 3:
+        raise ValueError(f"semantics_gt must be [X, Y, Z], got {tuple(semantics_gt.shape)}")
+    labels = semantics_gt.long().reshape(-1)
     if int(labels.min()) < 0 or int(labels.max()) > FREE:
         raise ValueError(f"semantics_gt values must lie in [0, {FREE}]")
     occupied = labels != FREE
-    if mask is None:
-        return labels, occupied, torch.ones_like(occupied)
-    if mask.shape != shape:
-        raise ValueError(f"mask must be {tuple(shape)}, got {tuple(mask.shape)}")
-    return labels, occupied, mask.bool()
+    out = {}
+    if mask is not None:
+        if mask.shape != semantics_gt.shape:
+            raise ValueError(f"mask must be {tuple(semantics_gt.shape)}, got {tuple(mask.shape)}")
+        keep = mask.bool().reshape(-1)
+        out["voxel_rows"] = torch.nonzero(keep).reshape(-1)
+        out["voxel_occupied"] = occupied[keep].float()
+        occupied = occupied & keep
+    else:
+        out["voxel_occupied"] = occupied.float()
+    out["occupied_rows"] = torch.nonzero(occupied).reshape(-1)
+    out["occupied_labels"] = labels[occupied]
+    return out
 
 
-def voxel_density_loss(density: torch.Tensor, semantics_gt: torch.Tensor,
-                       mask: torch.Tensor | None = None) -> torch.Tensor:
-    """BCE(σ, gt != 17), mean over the (masked) voxels, unweighted. density [B, X, Y, Z] in [0, 1];
-    semantics_gt uint8/long [B, X, Y, Z] with 17 = free; mask bool [B, X, Y, Z] or None (every voxel, as the
-    official 3D training). No voxel kept gives 0 (graph kept)."""
-    if density.dim() != 4:
-        raise ValueError(f"density must be [B, X, Y, Z], got {tuple(density.shape)}")
-    _, occupied, keep = _voxel_labels(density, semantics_gt, mask)
-    with torch.autocast(device_type=density.device.type, enabled=False):
-        sigma = density[keep].float()
-        return F.binary_cross_entropy(sigma, occupied[keep].float()) if sigma.numel() else density.sum() * 0
+def voxel_density_loss(sigma: torch.Tensor, occupied: torch.Tensor) -> torch.Tensor:
+    """BCE(σ, occupied), mean over the supervised voxels, unweighted: sigma [K] in [0, 1] (the density at the rows
+    of :func:`voxel_targets`), occupied float [K] (its "voxel_occupied"). K = 0 gives 0 (graph kept)."""
+    if sigma.shape != occupied.shape or sigma.dim() != 1:
+        raise ValueError(f"sigma and occupied must both be [K], got {tuple(sigma.shape)} and {tuple(occupied.shape)}")
+    with torch.autocast(device_type=sigma.device.type, enabled=False):
+        return F.binary_cross_entropy(sigma.float(), occupied.float()) if sigma.numel() else sigma.sum() * 0
 
 
-def voxel_semantics_loss(logits: torch.Tensor, semantics_gt: torch.Tensor,
-                         mask: torch.Tensor | None = None) -> torch.Tensor:
-    """CE of the logits [B, X, Y, Z, 17] over the occupied (masked) voxels, unweighted; semantics_gt and mask as
-    in :func:`voxel_density_loss`. No occupied voxel kept gives 0 (graph kept)."""
-    if logits.dim() != 5 or logits.shape[-1] != NUM_CLASSES:
-        raise ValueError(f"logits must be [B, X, Y, Z, {NUM_CLASSES}], got {tuple(logits.shape)}")
-    labels, occupied, keep = _voxel_labels(logits, semantics_gt, mask)
-    sem_keep = keep & occupied
-    if bool(sem_keep.any()):
-        return F.cross_entropy(logits[sem_keep], labels[sem_keep])
-    return logits.sum() * 0.0
+def voxel_semantics_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """CE of the logits [K', 17] of the supervised occupied voxels against their classes labels [K'] (long),
+    mean, unweighted. K' = 0 gives 0 (graph kept)."""
+    if logits.dim() != 2 or logits.shape[-1] != NUM_CLASSES or labels.shape != logits.shape[:1]:
+        raise ValueError(f"logits must be [K, {NUM_CLASSES}] and labels [K], got {tuple(logits.shape)} and "
+                         f"{tuple(labels.shape)}")
+    if logits.shape[0] == 0:
+        return logits.sum() * 0.0
+    return F.cross_entropy(logits, labels.long())
 
 
 # --- the LiDAR depth of the LSS depth distribution ------------------------------------------------------------------

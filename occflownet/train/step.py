@@ -8,6 +8,8 @@ indexes the stacked [N, X, Y, Z] volumes.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from occflownet.data.rays import FREE_BEFORE_MIN, free_segment_ends
@@ -37,6 +39,21 @@ class LossComputer:
         self.terms = loss_terms(cfg)
         self.needs = frozenset(name for term in self.terms for name in term.needs)
 
+    @property
+    def heads_at_rows(self) -> bool:
+        """Whether the model's heads need to run only on the supervised voxels: every term reads the grid there
+        (3D labels alone; no rendering and no free prior, which read every voxel)."""
+        return not self.needs & {"density", "logits", *RENDERINGS}
+
+    def head_rows(self, batch: dict, device) -> dict:
+        """Keyword arguments of the model's forward for this batch: ``density_at`` / ``logits_at`` (the rows of
+        :func:`~occflownet.train.losses.voxel_targets`) when :attr:`heads_at_rows`, else none (the whole grid)."""
+        if not self.heads_at_rows:
+            return {}
+        rows = batch.get("voxel_rows")
+        return {"density_at": None if rows is None else rows.to(device),
+                "logits_at": batch["occupied_rows"].to(device)}
+
     def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None) -> dict:
         inputs = self.inputs(outputs, batch, device, generator)
         terms = {term.name: term(inputs) for term in self.terms}
@@ -47,7 +64,9 @@ class LossComputer:
         """The inputs the terms name (``self.needs``), each computed once (and a few cheap others):
 
         - model outputs as float32: "density" [B, X, Y, Z], "logits" [B, X, Y, Z, 17], "depth_prob" [B, N, D, h, w];
-          "feature_intrinsics" [B, N, 3, 3];
+          "feature_intrinsics" [B, N, 3, 3]; "voxel_sigma" [K] and "occupied_logits" [K', 17], σ and the logits at
+          the batch's "voxel_rows" (every voxel without) and "occupied_rows" (the model gave them at those rows
+          when :meth:`head_rows` asked it to, else they are picked from the grid);
         - renderings (:meth:`renderings`): "rendered", "free_opacity" [F], "before_opacity" [S];
         - constants: "class_weights" [17] or None, "depth_bins" [D];
         - every other name is a batch field, moved to ``device`` ("ray_depths" [R], "ray_labels" [R], "cam2ego"
@@ -56,6 +75,12 @@ class LossComputer:
         density, logits = outputs["density"].float(), outputs["logits"].float()
         found = {"density": density, "logits": logits, "depth_bins": self.depth_bins.to(device),
                  "class_weights": None if self.class_weights is None else self.class_weights.to(device)}
+        if "voxel_sigma" in self.needs:
+            found["voxel_sigma"] = self._at_rows(density.reshape(-1), batch.get("voxel_rows"), density.dim() == 1,
+                                                 device)
+        if "occupied_logits" in self.needs:
+            found["occupied_logits"] = self._at_rows(logits.reshape(-1, logits.shape[-1]), batch["occupied_rows"],
+                                                     logits.dim() == 2, device)
         if "depth_prob" in self.needs:
             found.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"])
         found.update(self.renderings(density, logits, batch, device, generator))
@@ -68,6 +93,12 @@ class LossComputer:
             found[name] = [v.to(device) for v in value] if isinstance(value, list) else value.to(device)
         return found
 
+    @staticmethod
+    def _at_rows(values: torch.Tensor, rows: torch.Tensor | None, given: bool, device) -> torch.Tensor:
+        """values [N, ...] flattened over the batch's grids → its rows ``rows`` [K] (None: all), unless the model
+        ``given`` them at those rows already."""
+        return values if given or rows is None else values[rows.to(device)]
+
     def renderings(self, density: torch.Tensor, logits: torch.Tensor, batch: dict, device,
                    generator: torch.Generator | None = None) -> dict:
         """Those of :data:`RENDERINGS` the terms need, through the per-frame volumes (:meth:`volumes`), in that
@@ -76,41 +107,43 @@ class LossComputer:
         wanted = [name for name in RENDERINGS if name in self.needs]
         if not wanted:
             return {}
-        dens, logi = self.volumes(density, logits, batch, device)
+        volumes = self.volumes(density, logits, batch, device)
         made = {}
         if "rendered" in wanted:
-            made["rendered"] = render_rays(dens, logi, batch["ray_origins"].to(device),
+            made["rendered"] = render_rays(*volumes.grids, batch["ray_origins"].to(device),
                                            batch["ray_directions"].to(device), self.render_cfg, generator=generator,
-                                           batch_index=batch["ray_volume"].to(device))
+                                           batch_index=batch["ray_volume"].to(device),
+                                           logits_index=volumes.logits_index)
         if "free_opacity" in wanted:
-            made["free_opacity"] = self._free_opacity(dens, logi, batch, device, generator)
+            made["free_opacity"] = self._free_opacity(volumes, batch, device, generator)
         if "before_opacity" in wanted:
-            made["before_opacity"] = self._before_opacity(dens, logi, batch, device, generator)
+            made["before_opacity"] = self._before_opacity(volumes, batch, device, generator)
         return made
 
-    def volumes(self, density: torch.Tensor, logits: torch.Tensor, batch: dict, device):
-        """Stacked per-frame volumes (density [N, X, Y, Z], logits [N, X, Y, Z, 17]) for the batch's rays."""
+    def volumes(self, density: torch.Tensor, logits: torch.Tensor, batch: dict, device) -> "FrameVolumes":
+        """The per-frame volumes of the batch's rays (:class:`FrameVolumes`)."""
         source = batch["volume_source"].to(device)
         temporal = batch["volume_is_temporal"].to(device)
         if self.cfg.flow:
             parts = [PackedMoves.from_arrays(**moves) for moves, _ in batch["flow"]]
             packed = PackedMoves.concat(parts, [offset for _, offset in batch["flow"]]).to(device)
-            return warp_volumes(density, logits, source, packed, mover=self.cfg.flow_mover)
+            return FrameVolumes(*warp_volumes(density, logits, source, packed, mover=self.cfg.flow_mover))
         dens = density[source]
         if self.cfg.disocclusion and bool(temporal.any()):
             # disocclude each sample's volume once, then give its copy to the temporal volumes
             dens = torch.where(temporal[:, None, None, None], disocclude(density, logits)[source], dens)
-        return dens, logits[source]
+        return FrameVolumes(dens, logits, source)   # the frames of a sample read its logits: no copy of them
 
-    def _free_opacity(self, dens, logi, batch: dict, device, generator) -> torch.Tensor:
+    def _free_opacity(self, volumes: "FrameVolumes", batch: dict, device, generator) -> torch.Tensor:
         """Opacity [F] of the batch's free rays (free-space beams, camera rays beyond the grid) through their
         volumes; [0] when no sample of the batch found any (the dataset then leaves the free_* fields out)."""
         if "free_origins" not in batch:
             return torch.zeros(0, device=device)
-        return render_rays(dens, logi, batch["free_origins"].to(device), batch["free_directions"].to(device),
-                           self.render_cfg, generator=generator, batch_index=batch["free_volume"].to(device)).weight_sum
+        return render_rays(*volumes.grids, batch["free_origins"].to(device), batch["free_directions"].to(device),
+                           self.render_cfg, generator=generator, batch_index=batch["free_volume"].to(device),
+                           logits_index=volumes.logits_index).weight_sum
 
-    def _before_opacity(self, dens, logi, batch: dict, device, generator) -> torch.Tensor:
+    def _before_opacity(self, volumes: "FrameVolumes", batch: dict, device, generator) -> torch.Tensor:
         """Opacity [S] of the free stretches in front of the points of ``free_rays_per_step`` rays per sample (every
         k-th ray of the batch: the rays are drawn at random and stored sample by sample), each through its ray's
         volume (``free_segment_ends``)."""
@@ -120,7 +153,23 @@ class LossComputer:
         ends = free_segment_ends(batch["ray_depths"][pick])
         keep = pick[ends >= FREE_BEFORE_MIN]
         ends = ends[ends >= FREE_BEFORE_MIN]
-        out = render_rays(dens, logi, batch["ray_origins"][keep].to(device), batch["ray_directions"][keep].to(device),
-                          self.render_cfg, generator=generator, batch_index=batch["ray_volume"][keep].to(device),
-                          far=ends.to(device))
+        out = render_rays(*volumes.grids, batch["ray_origins"][keep].to(device),
+                          batch["ray_directions"][keep].to(device), self.render_cfg, generator=generator,
+                          batch_index=batch["ray_volume"][keep].to(device), far=ends.to(device),
+                          logits_index=volumes.logits_index)
         return out.weight_sum
+
+
+@dataclass(frozen=True)
+class FrameVolumes:
+    """What the batch's rays render through: density [N, X, Y, Z] per frame volume (``ray_volume`` indexes it) and
+    logits [L, X, Y, Z, 17], volume n reading logits volume ``logits_index[n]`` (long [N]; None: L = N, one each).
+    Without flow the frames of a sample share its predicted logits (L = B); with flow each frame has its own."""
+
+    density: torch.Tensor
+    logits: torch.Tensor
+    logits_index: torch.Tensor | None = None
+
+    @property
+    def grids(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.density, self.logits
