@@ -30,6 +30,7 @@ LAYERS = (
               "occflownet.pictures", "occflownet.voxel_walk", "occflownet.voxel_walk_numba", "occflownet.files",
               "occflownet.choices", "occflownet.options",
               "occflownet.viewer")),
+    ("runtime", ("occflownet.runtime",)),
     ("data", ("occflownet.data",)),
     ("labels", ("occflownet.labels",)),
     ("synth", ("occflownet.synth",)),

@@ -41,6 +41,9 @@ model's own preprocessing): an image resized by (sx, sy) = (w'/w, h'/h) has ``f'
 ``c' = (c + 0.5)·s − 0.5``, i.e. ``K' = A·K`` with ``A = [[sx, 0, (sx − 1)/2], [0, sy, (sy − 1)/2], [0, 0, 1]]``
 (:func:`scale_intrinsics`). Only a uniform resize keeps a calibration valid: the aspect ratios must agree within
 :data:`ASPECT_TOLERANCE`, else :class:`CalibrationError` (the image was cropped or padded in an unknown way).
+The rule is applied in one place, :meth:`Calibration.arrays_for` (calibration size → stored size → 1/n of a JPEG
+decoded at reduced scale → the size a decoded image was resized to), which every inference path reaches through
+:func:`occflownet.runtime.frame_inputs`.
 """
 from __future__ import annotations
 from occflownet.contract.calibration import (ASPECT_TOLERANCE, ORTHONORMAL_TOLERANCE, SINGULAR_TOLERANCE, Calibration,
