@@ -10,7 +10,7 @@ from occflownet import contract
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
 from occflownet.contract import (CalibrationError, ContractError, MissingCalibrationField, calibration_arrays,
                                  calibration_json,
-                                 check_signature, make_feeds, parse_metadata, rescale_intrinsics, scale_intrinsics,
+                                 check_signature, parse_metadata, rescale_intrinsics, scale_intrinsics,
                                  validate_calibration)
 from occflownet.rig import default_rig
 
@@ -209,15 +209,6 @@ def test_check_signature():
         check_signature(GOOD_IN[:2] + [("cam2ego", "float32", [None, 5, 4, 4])], GOOD_OUT, "m.onnx")
     assert contract.INPUT_NAMES == ("images", "intrinsics", "cam2ego")
     assert [s.onnx_elem_type for s in contract.OUTPUTS] == [2, 1]
-
-
-def test_make_feeds_casts_and_checks_shapes():
-    feeds = make_feeds(np.zeros((1, 6, 9, 16, 3)), np.zeros((1, 6, 3, 3), np.float64), np.zeros((1, 6, 4, 4)))
-    assert [v.dtype for v in feeds.values()] == [np.uint8, np.float32, np.float32]
-    with pytest.raises(ValueError, match="cam2ego"):
-        make_feeds(np.zeros((1, 6, 9, 16, 3)), np.zeros((1, 6, 3, 3)), np.zeros((1, 6, 3, 3)))
-    with pytest.raises(ValueError, match="batch sizes differ"):
-        make_feeds(np.zeros((2, 6, 9, 16, 3)), np.zeros((1, 6, 3, 3)), np.zeros((1, 6, 4, 4)))
 
 
 def _metadata():

@@ -5,7 +5,7 @@ and ``eval --model`` (onnxruntime), ``serve/`` (HTTP), embedders — takes its n
 calibration checks, intrinsics rescaling and onnxruntime sessions from here. Importing this package imports numpy and
 :mod:`occflownet.occ3d` only: no torch, no onnx; onnxruntime only when a session is made.
 
-Modules: :mod:`~occflownet.contract.tensors` (the tensors, signature check, feeds),
+Modules: :mod:`~occflownet.contract.tensors` (the tensors, signature check),
 :mod:`~occflownet.contract.metadata` (metadata keys and parsing), :mod:`~occflownet.contract.calibration`
 (calibration JSON and the rescaling rule), :mod:`~occflownet.contract.images` (image decoding, the graph's crop
 window, reduced-scale JPEG decoding),
@@ -55,9 +55,9 @@ from occflownet.contract.images import (JPEG_REDUCTIONS, ImageHeader, crop_windo
                                         image_header, reduced_size)
 from occflownet.contract.metadata import (METADATA_KEYS, REQUIRED_METADATA_KEYS, ModelMetadata, decode_metadata,
                                           encode_metadata, parse_metadata)
-from occflownet.contract.session import check_session, create_session, run_session
+from occflownet.contract.session import check_session, create_session
 from occflownet.contract.tensors import (CONTRACT_VERSION, INPUT_NAMES, INPUTS, NUM_CAMERAS, OUTPUT_NAMES, OUTPUTS,
-                                         ContractError, TensorSpec, check_signature, make_feeds, session_signature)
+                                         ContractError, TensorSpec, check_signature, session_signature)
 
 __all__ = [
     "ASPECT_TOLERANCE", "ORTHONORMAL_TOLERANCE", "SINGULAR_TOLERANCE", "Calibration", "CalibrationError",
@@ -65,7 +65,7 @@ __all__ = [
     "rescale_intrinsics", "resize_matrix", "scale_intrinsics", "validate_calibration",
     "JPEG_REDUCTIONS", "ImageHeader", "crop_window", "decode_reduction", "decode_rgb", "image_header",
     "reduced_size", "METADATA_KEYS", "REQUIRED_METADATA_KEYS", "ModelMetadata", "decode_metadata", "encode_metadata",
-    "parse_metadata", "check_session", "create_session", "run_session",
+    "parse_metadata", "check_session", "create_session",
     "CONTRACT_VERSION", "INPUT_NAMES", "INPUTS", "NUM_CAMERAS", "OUTPUT_NAMES", "OUTPUTS", "ContractError",
-    "TensorSpec", "check_signature", "make_feeds", "session_signature",
+    "TensorSpec", "check_signature", "session_signature",
 ]
