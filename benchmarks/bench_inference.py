@@ -63,17 +63,19 @@ sys.exit(main(["export", "--checkpoint", ckpt, "--out", out]))
 """
 
 
-def frame_inputs(input_size):
-    """(whole images uint8 [6, H, W, 3], K, T, decode), (reduced-scale images, K, T, decode), source: ``decode()``
-    decodes the six JPEGs (held in memory) as that path does, for the end-to-end timings."""
-    from occflownet.contract import calibration_arrays, decode_reduction, image_header, load_calibration
+def bench_inputs(input_size):
+    """(whole, reduced, source): whole = (ModelInputs of the six images decoded whole, decode), reduced = (the same as
+    the inference paths decode them, at reduced scale, decode); both built by the one feeds function
+    (``occflownet.runtime.frame_inputs`` through ``predict.Frame.inputs``). ``decode()`` decodes the six JPEGs (held
+    in memory) as that path does, → uint8 [6, H, W, 3], for the end-to-end timings."""
+    from occflownet.contract import decode_reduction, image_header, load_calibration
     from occflownet.predict import decode_image, find_camera_images, load_frame
     from occflownet.rig import default_rig
+    from occflownet.runtime import frame_inputs
 
     if not (FRAME / "calib.json").is_file():
-        K, T = calibration_arrays(default_rig(1600, 900))
         images = np.random.default_rng(0).integers(0, 256, (6, 900, 1600, 3), dtype=np.uint8)
-        same = (images, K, T, lambda: images)
+        same = (frame_inputs(images, default_rig(1600, 900)), lambda: images)
         return same, same, "random images (no real frame)"
     calib = load_calibration(FRAME / "calib.json")
     blobs = [p.read_bytes() for p in find_camera_images(FRAME).values()]
@@ -81,8 +83,7 @@ def frame_inputs(input_size):
     for size in (None, input_size):
         frame = load_frame(FRAME, size)
         n = decode_reduction(image_header(blobs[0]), size)
-        decoded.append((frame.images, *frame.calibration_arrays(calib),
-                        lambda n=n: np.stack([decode_image(b, "image", n) for b in blobs])))
+        decoded.append((frame.inputs(calib), lambda n=n: np.stack([decode_image(b, "image", n) for b in blobs])))
     return decoded[0], decoded[1], "real nuScenes frame"
 
 
@@ -99,26 +100,30 @@ def _timed(fn) -> float:
     return time.perf_counter() - t
 
 
-def model_flops(model, args) -> float:
+def model_flops(model, inputs) -> float:
+    """FLOPs of one torch run of ``model`` on ``inputs`` (ModelInputs)."""
     from torch.utils.flop_counter import FlopCounterMode
 
-    with torch.no_grad(), FlopCounterMode(display=False) as counter:
-        model.inference(*args)
+    from occflownet.runtime import TorchPredictor
+
+    with FlopCounterMode(display=False) as counter:
+        TorchPredictor(model)(inputs)
     return float(counter.get_total_flops())
 
 
 def bench_model(name: str, occupied: float, checkpoint: str | None, inputs):
     """The model to time: the trained checkpoint, or random-init (seed 0) with Φσ's bias shifted so that a fraction
-    ``occupied`` of the voxels of the real frame is occupied."""
+    ``occupied`` of the voxels of the real frame is occupied (``inputs``: its ModelInputs)."""
     from occflownet.model import create_model, get_preset, load_checkpoint
+
+    from occflownet.runtime import TorchPredictor
 
     if checkpoint:
         return load_checkpoint(checkpoint, expect_preset=name)[0].eval()
     model = create_model(get_preset(name), seed=0).eval()
-    images, K, T = inputs
-    args = (torch.from_numpy(images)[None], torch.from_numpy(K)[None], torch.from_numpy(T)[None])
+    density = TorchPredictor(model)(inputs)[1]
     with torch.no_grad():
-        logits = torch.logit(model.inference(*args)[1]).flatten()
+        logits = torch.logit(torch.from_numpy(density)).flatten()
         cut = torch.quantile(logits[::7], 1.0 - occupied) if occupied > 0 else logits.max() + 1
         model.decoder.sigma_head[-1].bias += torch.logit(torch.tensor(model.cfg.threshold)) - cut
         model.decoder.semantic_head[-1].bias.zero_()
@@ -141,10 +146,12 @@ def export_baseline_commit(rev: str, checkpoint: Path, out: Path, workdir: Path)
     return out
 
 
-def profile(session_path: Path, feeds: dict, runs: int, threads: int) -> tuple[dict, dict, float]:
-    """onnxruntime's profiler over ``runs`` runs (after one warm-up): ({op class: ms per run}, {node: (ms per run,
-    output shape)}, kernel ms per run)."""
+def profile(session_path: Path, inputs, runs: int, threads: int) -> tuple[dict, dict, float]:
+    """onnxruntime's profiler over ``runs`` runs (after one warm-up) on ``inputs`` (ModelInputs): ({op class: ms per
+    run}, {node: (ms per run, output shape)}, kernel ms per run)."""
     import onnxruntime as ort
+
+    from occflownet.runtime import OnnxPredictor
 
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads
@@ -152,8 +159,9 @@ def profile(session_path: Path, feeds: dict, runs: int, threads: int) -> tuple[d
     so.enable_profiling = True
     so.profile_file_prefix = str(session_path.parent / f"profile-{session_path.stem}")
     session = ort.InferenceSession(str(session_path), so, providers=["CPUExecutionProvider"])
+    predictor = OnnxPredictor(session)
     for _ in range(runs + 1):
-        session.run(None, feeds)
+        predictor(inputs)
     events = json.loads(Path(session.end_profiling()).read_text())
     ops, nodes = collections.Counter(), collections.Counter()
     shapes = {}
@@ -175,7 +183,8 @@ def print_profile(label: str, ops: dict, nodes: dict, total: float, top: int = 1
 
 
 class OpenVinoSession:
-    """OpenVINO CPU (``INFERENCE_PRECISION_HINT`` f32, as tests/test_runtimes.py) behind onnxruntime's ``run``."""
+    """OpenVINO CPU (``INFERENCE_PRECISION_HINT`` f32, as tests/test_runtimes.py) behind onnxruntime's ``run``, so
+    that an ``OnnxPredictor`` runs it."""
 
     def __init__(self, path: Path, threads: int):
         import openvino as ov
@@ -189,20 +198,20 @@ class OpenVinoSession:
 
 
 def interleaved(graphs: list[tuple[str, object, tuple]], runs: int) -> tuple[dict, dict]:
-    """Each (label, session, (images, K, T, decode)) once per round, the order rotating, 2 warm-up rounds →
+    """Each (label, predictor, (inputs, decode)) once per round, the order rotating, 2 warm-up rounds →
     ({label: inference seconds}, {label: decode + inference seconds}) per run (decode: the six JPEGs as that
-    graph's code decodes them, then the inference on its result)."""
-    from occflownet.contract import run_session
+    graph's code decodes them, then the inference on its result with the frame's intrinsics and cam2ego)."""
+    from occflownet.runtime import ModelInputs
 
     infer = {label: [] for label, _, _ in graphs}
     total = {label: [] for label, _, _ in graphs}
     for i in range(runs + 2):
         order = graphs[i % len(graphs):] + graphs[:i % len(graphs)]
-        for label, session, (_, K, T, decode) in order:
+        for label, predictor, (inputs, decode) in order:
             t0 = time.perf_counter()
             images = decode()
             t1 = time.perf_counter()
-            run_session(session, images, K, T)
+            predictor(ModelInputs.frame(images, inputs.intrinsics[0], inputs.cam2ego[0]))
             t2 = time.perf_counter()
             if i >= 2:
                 infer[label].append(t2 - t1)
@@ -218,7 +227,7 @@ def build_graphs(name: str, args, model, whole, reduced, workdir: Path) -> list[
     from occflownet.model import save_checkpoint
 
     path = workdir / f"{name}.onnx"
-    sample = ParitySample("bench", reduced[0][None], reduced[1][None], reduced[2][None])   # (images, K, T, …)
+    sample = ParitySample.of("bench", reduced[0])                                         # (inputs, decode)
     export_model(model, model.cfg, path, parity_samples=[sample])
     graphs = [("today", path, reduced), ("today, whole images", path, whole)]
     if args.baseline or args.baseline_commit:
@@ -242,10 +251,11 @@ def build_graphs(name: str, args, model, whole, reduced, workdir: Path) -> list[
 
 
 def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -> None:
-    from occflownet.contract import create_session, make_feeds, run_session
+    from occflownet.contract import create_session
     from occflownet.export.onnx_export import agreement
+    from occflownet.runtime import OnnxPredictor, TorchPredictor
 
-    model = bench_model(name, args.occupied, args.checkpoint, reduced[:3])
+    model = bench_model(name, args.occupied, args.checkpoint, reduced[0])
     t = time.perf_counter()
     graphs = build_graphs(name, args, model, whole, reduced, workdir)
     print(f"{name}: exported in {time.perf_counter() - t:.0f} s; {len(graphs)} graphs, {args.runs} interleaved runs",
@@ -253,17 +263,18 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
     if args.openvino:
         graphs += [(f"{label} [OpenVINO]", path, inputs) for label, path, inputs in graphs
                    if label in ("today", "today int8")]
-    sessions = [(label, OpenVinoSession(path, threads) if label.endswith("[OpenVINO]")
-                 else create_session(path, threads, spinning=SPINNING), inputs) for label, path, inputs in graphs]
+    sessions = [(label, OnnxPredictor(OpenVinoSession(path, threads) if label.endswith("[OpenVINO]")
+                                      else create_session(path, threads, spinning=SPINNING)), inputs)
+                for label, path, inputs in graphs]
     times, totals = interleaved(sessions, args.runs)
-    ref = run_session(sessions[0][1], *reduced[:3])
+    ref = sessions[0][1](reduced[0])
     first, first_total = np.median(times[graphs[0][0]]), np.median(totals[graphs[0][0]])
-    flops = model_flops(model, tuple(torch.from_numpy(a)[None] for a in reduced[:3]))
+    flops = model_flops(model, reduced[0])
     print(f"{name}: {flops / 1e9:.2f} GFLOP (torch FLOP counter on the reduced-scale frame); fp32 occupied "
           f"{100 * np.mean(ref[0] != 17):.1f} % of voxels")
     for (label, session, inputs), (_, path, _) in zip(sessions, graphs):
         p50, total = np.median(times[label]), np.median(totals[label])
-        out = run_session(session, *inputs[:3])
+        out = session(inputs[0])
         a = agreement(ref[0], ref[1], out[0], out[1])
         print(f"  {label:42s} p50 {p50 * 1e3:8.1f} ms (p90 {np.percentile(times[label], 90) * 1e3:7.1f}), "
               f"{p50 / first:5.2f}x of today | with decoding p50 {total * 1e3:8.1f} ms, {total / first_total:5.2f}x "
@@ -273,13 +284,11 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
         for label, path, inputs in graphs:
             if label.endswith("[OpenVINO]"):
                 continue
-            print_profile(label, *profile(path, make_feeds(*(x[None] for x in inputs[:3])), args.profile_runs,
-                                          threads))
+            print_profile(label, *profile(path, inputs[0], args.profile_runs, threads))
     if args.torch:
-        targs = tuple(torch.from_numpy(a)[None] for a in reduced[:3])
-        with torch.no_grad():
-            model.inference(*targs)
-            tt = [_timed(lambda: model.inference(*targs)) for _ in range(max(3, args.runs // 4))]
+        predictor = TorchPredictor(model)
+        predictor(reduced[0])
+        tt = [_timed(lambda: predictor(reduced[0])) for _ in range(max(3, args.runs // 4))]
         print(f"  torch eager (reduced-scale frame)            p50 {np.median(tt) * 1e3:8.1f} ms")
 
 
@@ -315,9 +324,9 @@ def main(argv=None) -> int:
         for name in args.presets:
             from occflownet.model import get_preset
 
-            whole, reduced, source = frame_inputs(get_preset(name).input_size)
-            print(f"{name}: inputs {source}: whole 6x{whole[0].shape[2]}x{whole[0].shape[1]}, as today's paths "
-                  f"decode them 6x{reduced[0].shape[2]}x{reduced[0].shape[1]}")
+            whole, reduced, source = bench_inputs(get_preset(name).input_size)
+            (w, h), (rw, rh) = whole[0].image_size, reduced[0].image_size
+            print(f"{name}: inputs {source}: whole 6x{w}x{h}, as today's paths decode them 6x{rw}x{rh}")
             bench_preset(name, args, whole, reduced, Path(tmp), args.threads)
     print(f"fp32 matmul 2048^3 (torch): {matmul_gflops():.1f} GFLOP/s at end; load average "
           f"{os.getloadavg()[0]:.2f}")

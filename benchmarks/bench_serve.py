@@ -74,10 +74,10 @@ def get_model(args, workdir: Path) -> tuple[Path, str]:
 
 
 class Direct:
-    """The same work without HTTP: decode the six JPEGs, session.run on the decoded arrays (this process)."""
+    """The same work without HTTP: decode the six JPEGs, run the model on the decoded arrays (this process), through
+    the server's own runtime (``ModelRuntime.frame`` → ``FrameCalibration.inputs`` → ``infer``)."""
 
     def __init__(self, model: Path, threads: int):
-        from occflownet.serve.calibration import request_calibration
         from occflownet.serve.model_runtime import ModelRuntime
         from occflownet.serve.settings import ServeSettings
 
@@ -85,7 +85,7 @@ class Direct:
         self.runtime = ModelRuntime.load(model, ServeSettings(intra_op_threads=threads))
         self.images = np.stack(self.decode())                                  # uint8 [6, 900, 1600, 3] RGB
         calib = (FRAME / "calib.json").read_bytes()
-        self.K, self.T = request_calibration(calib, self.runtime.metadata, [(1600, 900)] * 6)
+        self.inputs = self.runtime.frame(calib, [(1600, 900)] * 6).inputs(self.images)
         for _ in range(3):
             self.infer()
 
@@ -94,12 +94,12 @@ class Direct:
         return [decode_image(cam, self.jpegs[cam], 1 << 30) for cam in CAMERAS]
 
     def infer(self):
-        return self.runtime.infer(self.images, self.K, self.T)
+        return self.runtime.infer(self.inputs)
 
     def batch2(self):
-        feeds = {"images": np.stack([self.images] * 2), "intrinsics": np.stack([self.K] * 2),
-                 "cam2ego": np.stack([self.T] * 2)}
-        return self.runtime.session.run(["occupancy"], feeds)
+        from occflownet.runtime import ModelInputs
+
+        return self.runtime.predictor.predict(ModelInputs.stack([self.inputs] * 2), ("occupancy",))
 
 
 def timed(fn) -> float:

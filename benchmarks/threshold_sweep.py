@@ -24,13 +24,15 @@ def main() -> None:
 
     from dataclasses import replace
 
-    from occflownet.eval.evaluate import checkpoint_predictor, predictions, select_samples
+    from occflownet.eval.evaluate import predictions, select_samples
+    from occflownet.model import model_from_source
     from occflownet.occ3d import FREE
+    from occflownet.runtime import TorchPredictor
 
     samples = select_samples(args.dataroot, split=args.split)
     samples = replace(samples, positions=samples.positions[::args.every])
     tp, fp, fn = (np.zeros(len(TAUS)) for _ in range(3))
-    for _, _, _, density, labels in predictions(samples, checkpoint_predictor(args.checkpoint)):
+    for _, _, _, density, labels in predictions(samples, TorchPredictor(model_from_source(args.checkpoint))):
         mask = labels.mask_camera.astype(bool)
         occupied, sigma = (labels.semantics != FREE)[mask], density[mask]
         for i, tau in enumerate(TAUS):

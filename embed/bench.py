@@ -24,25 +24,24 @@ FRAME = REPO.parent / "shared" / "data" / "nuscenes-frame"
 
 
 def python_round(model: Path, images_dir: Path, calib: Path, runs: int, threads: int) -> tuple[float, float]:
-    from occflownet.contract import (calibration_arrays, check_session, create_session, decode_reduction,
-                                     image_header, load_calibration, run_session)
+    from occflownet.contract import decode_reduction, image_header, load_calibration
     from occflownet.predict import decode_image, find_camera_images
+    from occflownet.runtime import OnnxPredictor, frame_calibration
 
-    session = create_session(model, threads=threads)
-    input_size = check_session(session, str(model)).input_size
+    predictor = OnnxPredictor.open(model, threads=threads)
     blobs = [(p.read_bytes(), str(p)) for p in find_camera_images(images_dir).values()]
     header = image_header(blobs[0][0])
-    scale = decode_reduction(header, input_size)
+    scale = decode_reduction(header, predictor.input_size)
     decode = lambda: np.stack([decode_image(b, n, scale) for b, n in blobs])  # noqa: E731
-    images = decode()
-    K, T = calibration_arrays(load_calibration(calib), header.width, header.height, reduction=scale)
-    run_session(session, images, K, T)  # warm-up
+    frame = frame_calibration(load_calibration(calib), [(header.width, header.height)] * len(blobs),
+                              reductions=[scale] * len(blobs))
+    predictor(frame.inputs(decode()))  # warm-up
     total, infer = [], []
     for _ in range(runs):
         t0 = time.perf_counter()
         images = decode()
         t1 = time.perf_counter()
-        run_session(session, images, K, T)
+        predictor(frame.inputs(images))
         t2 = time.perf_counter()
         total.append((t2 - t0) * 1e3)
         infer.append((t2 - t1) * 1e3)

@@ -1,5 +1,9 @@
 """torch ↔ onnxruntime parity of an exported occupancy graph.
 
+Both sides are predictors of the one predictor path (:class:`occflownet.runtime.TorchPredictor`,
+:class:`occflownet.runtime.OnnxPredictor`) fed the same :class:`occflownet.runtime.ModelInputs`, built by
+:func:`occflownet.runtime.frame_inputs` from images and calibration JSON.
+
 Criteria (per sample): density max |σ_torch − σ_ort| ≤ 1e-4, and occupancy equal on ≥ 99.99 % of the voxels whose
 σ_torch is not within 1e-3 of τ (voxels at the threshold may legitimately flip).
 """
@@ -9,15 +13,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from occflownet.occ3d import CAMERAS
-from occflownet.contract import calibration_arrays, load_calibration
+from occflownet.contract import load_calibration
 from occflownet.geometry import rotation_z
-from occflownet.contract import create_session, run_session
-from occflownet.predict import load_image_folder
 from occflownet.model import ModelConfig, OccupancyModel
+from occflownet.occ3d import CAMERAS
+from occflownet.predict import load_image_folder
 from occflownet.rig import default_rig
+from occflownet.runtime import ModelInputs, OnnxPredictor, TorchPredictor, frame_inputs
 
 DENSITY_TOL = 1e-4
 OCCUPANCY_MIN_AGREEMENT = 0.9999
@@ -26,12 +29,21 @@ THRESHOLD_BAND = 1e-3
 
 @dataclass
 class ParitySample:
-    """One batch: images uint8 [B, 6, H, W, 3], intrinsics float32 [B, 6, 3, 3], cam2ego float32 [B, 6, 4, 4]."""
+    """One named batch: images uint8 [B, 6, H, W, 3], intrinsics float32 [B, 6, 3, 3], cam2ego float32
+    [B, 6, 4, 4] (camera → ego)."""
 
     name: str
     images: np.ndarray
     intrinsics: np.ndarray
     cam2ego: np.ndarray
+
+    @classmethod
+    def of(cls, name: str, inputs: ModelInputs) -> ParitySample:
+        return cls(name, inputs.images, inputs.intrinsics, inputs.cam2ego)
+
+    @property
+    def inputs(self) -> ModelInputs:
+        return ModelInputs(self.images, self.intrinsics, self.cam2ego)
 
 
 @dataclass
@@ -73,24 +85,21 @@ def _random_images(rng, batch: int, height: int, width: int) -> np.ndarray:
     return ((noise.astype(np.float32) * 0.5 + ramp * 0.5)).astype(np.uint8)
 
 
-def _stack(calibs: list[dict], width: int, height: int):
-    arrays = [calibration_arrays(c, width, height) for c in calibs]
-    return np.stack([a[0] for a in arrays]), np.stack([a[1] for a in arrays])
+def _frames(images: np.ndarray, calibs: list[dict]) -> ModelInputs:
+    """Frame b of ``images`` uint8 [B, 6, H, W, 3] with calibration JSON ``calibs[b]``, as one batch."""
+    return ModelInputs.stack([frame_inputs(im, calib) for im, calib in zip(images, calibs, strict=True)])
 
 
 def frame_sample(folder: str | Path, batch: int = 1) -> ParitySample:
-    """A real frame folder (six CAM_*.jpg + calib.json): batch 1 = as calibrated; batch 2 adds the same images
-    with the rig turned (a second calibration in the same batch)."""
+    """A real frame folder (six CAM_*.jpg + calib.json) decoded whole: batch 1 = as calibrated; batch 2 adds the same
+    images with the rig turned (a second calibration in the same batch)."""
     folder = Path(folder)
-    images = load_image_folder(folder)
-    calib = load_calibration(folder / "calib.json")
-    h, w = images.shape[1:3]
-    K, T = calibration_arrays(calib, w, h)
+    inputs = frame_inputs(load_image_folder(folder), load_calibration(folder / "calib.json"))
     if batch == 1:
-        return ParitySample(f"frame:{folder.name}", images[None], K[None], T[None])
+        return ParitySample.of(f"frame:{folder.name}", inputs)
     turn = rotation_z(np.radians(-40.0)).astype(np.float32)
-    return ParitySample(f"frame:{folder.name}+turned-rig", np.stack([images, images]), np.stack([K, K]),
-                        np.stack([T, turn @ T]))
+    turned = ModelInputs(inputs.images, inputs.intrinsics, turn @ inputs.cam2ego)
+    return ParitySample.of(f"frame:{folder.name}+turned-rig", ModelInputs.stack([inputs, turned]))
 
 
 def inference_frame_sample(folder: str | Path, cfg: ModelConfig) -> ParitySample:
@@ -100,8 +109,8 @@ def inference_frame_sample(folder: str | Path, cfg: ModelConfig) -> ParitySample
 
     folder = Path(folder)
     frame = load_frame(folder, tuple(cfg.input_size))
-    K, T = frame.calibration_arrays(load_calibration(folder / "calib.json"))
-    return ParitySample(f"frame:{folder.name}@1/{frame.reduction}", frame.images[None], K[None], T[None])
+    return ParitySample.of(f"frame:{folder.name}@1/{frame.reduction}",
+                           frame.inputs(load_calibration(folder / "calib.json")))
 
 
 def default_parity_samples(cfg: ModelConfig, frames: list | None = None, seed: int = 0) -> list[ParitySample]:
@@ -110,14 +119,13 @@ def default_parity_samples(cfg: ModelConfig, frames: list | None = None, seed: i
     as the inference paths decode it)."""
     rng = np.random.default_rng(seed)
     w, h = (int(v) for v in cfg.default_calibration["image_size"])
-    K, T = calibration_arrays(cfg.default_calibration)
+    default = cfg.default_calibration
     samples = [
-        ParitySample(f"random-{w}x{h}-default-rig", _random_images(rng, 1, h, w), K[None], T[None]),
-        ParitySample(f"random-{w}x{h}-default-rig-b2", _random_images(rng, 2, h, w), np.stack([K, K]),
-                     np.stack([T, T])),
+        ParitySample.of(f"random-{w}x{h}-default-rig", _frames(_random_images(rng, 1, h, w), [default])),
+        ParitySample.of(f"random-{w}x{h}-default-rig-b2", _frames(_random_images(rng, 2, h, w), [default] * 2)),
     ]
-    K2, T2 = _stack([second_calibration(1600, 900), default_rig(1600, 900)], 1600, 900)
-    samples.append(ParitySample("random-1600x900-two-rigs-b2", _random_images(rng, 2, 900, 1600), K2, T2))
+    two_rigs = [second_calibration(1600, 900), default_rig(1600, 900)]
+    samples.append(ParitySample.of("random-1600x900-two-rigs-b2", _frames(_random_images(rng, 2, 900, 1600), two_rigs)))
     for folder in frames or []:
         samples += [frame_sample(folder, 1), frame_sample(folder, 2), inference_frame_sample(folder, cfg)]
     return samples
@@ -135,14 +143,11 @@ def compare(occ_t: np.ndarray, dens_t: np.ndarray, occ_o: np.ndarray, dens_o: np
 
 def check_parity(model: OccupancyModel, onnx_path: str | Path, samples: list[ParitySample],
                  threshold: float) -> list[ParityCase]:
-    """Run every sample through torch (``model.inference``) and onnxruntime; one ParityCase per sample."""
-    session = create_session(onnx_path)
+    """Run every sample through torch (``model.inference``) and onnxruntime, both through the one predictor path;
+    one ParityCase per sample."""
+    torch_side, onnx_side = TorchPredictor(model), OnnxPredictor.open(onnx_path)
     cases = []
-    model = model.eval()
     for s in samples:
-        with torch.no_grad():
-            occ_t, dens_t = model.inference(torch.from_numpy(s.images), torch.from_numpy(s.intrinsics),
-                                            torch.from_numpy(s.cam2ego))
-        occ_o, dens_o = run_session(session, s.images, s.intrinsics, s.cam2ego)
-        cases.append(compare(occ_t.numpy(), dens_t.numpy(), occ_o, dens_o, threshold, s.name, s.images.shape))
+        inputs = s.inputs
+        cases.append(compare(*torch_side(inputs), *onnx_side(inputs), threshold, s.name, s.images.shape))
     return cases

@@ -25,9 +25,9 @@ import onnx
 
 from occflownet.export.onnx_export import ExportError, agreement, validate_proto
 from occflownet.export.parity import default_parity_samples, inference_frame_sample
-from occflownet.contract import create_session, run_session
 from occflownet.model import ModelConfig
 from occflownet.occ3d import FREE
+from occflownet.runtime import ModelInputs, OnnxPredictor
 
 # ops kept in float32 in the fp16 variant: index/geometry arithmetic, pooling, resize, fusion
 FP16_KEEP_FP32 = ["Resize", "ScatterND", "ScatterElements", "Floor", "Where", "Range", "NonZero", "GatherND",
@@ -121,13 +121,13 @@ def calibration_frames(folder: str | Path, cfg: ModelConfig, count: int) -> list
 
     folder = Path(folder)
     frame = load_frame(folder, tuple(cfg.input_size))
-    K, T = frame.calibration_arrays(load_calibration(folder / "calib.json"))
+    inputs = frame.inputs(load_calibration(folder / "calib.json"))
     feeds = []
     for i in range(count):
         gain = (0.6, 1.3, 0.85, 1.1, 0.75, 1.2)[i % 6]
-        images = np.clip((frame.images.astype(np.float32) - 128.0) * gain + 128.0 + 8.0 * (i % 3 - 1), 0, 255)
+        images = np.clip((inputs.images.astype(np.float32) - 128.0) * gain + 128.0 + 8.0 * (i % 3 - 1), 0, 255)
         turn = rotation_z(np.radians(-60.0 + 120.0 * i / max(1, count - 1))).astype(np.float32)
-        feeds.append({"images": images.astype(np.uint8)[None], "intrinsics": K[None], "cam2ego": (turn @ T)[None]})
+        feeds.append(ModelInputs(images.astype(np.uint8), inputs.intrinsics, turn @ inputs.cam2ego).feeds())
     return feeds
 
 
@@ -140,9 +140,7 @@ class _CalibrationReader:
         if frame is not None:
             self.samples = calibration_frames(frame, cfg, count)
         for s in default_parity_samples(cfg, [], seed=11) if frame is None else []:
-            for b in range(s.images.shape[0]):
-                self.samples.append({"images": s.images[b:b + 1], "intrinsics": s.intrinsics[b:b + 1],
-                                     "cam2ego": s.cam2ego[b:b + 1]})
+            self.samples += [one.feeds() for one in s.inputs.split()]
         self.samples = self.samples[:count]
         self._it = iter(self.samples)
 
@@ -183,7 +181,7 @@ def write_variants(fp32_path: str | Path, cfg: ModelConfig, fp16: bool = False, 
     """Write the requested variants beside ``fp32_path``; returns one report line per variant."""
     fp32_path = Path(fp32_path)
     sample = inference_frame_sample(frame, cfg) if frame else default_parity_samples(cfg, [], seed=5)[0]
-    reference = run_session(create_session(fp32_path), sample.images, sample.intrinsics, sample.cam2ego)
+    reference = OnnxPredictor.open(fp32_path)(sample.inputs)
     lines = []
     todo = [("fp16", write_fp16, ())] if fp16 else []
     todo += [("int8", write_int8, (cfg, 6, frame))] if int8 else []
@@ -191,7 +189,7 @@ def write_variants(fp32_path: str | Path, cfg: ModelConfig, fp16: bool = False, 
         dst = _with_suffix(fp32_path, tag)
         try:
             writer(fp32_path, dst, *extra)
-            out = run_session(create_session(dst), sample.images, sample.intrinsics, sample.cam2ego)
+            out = OnnxPredictor.open(dst)(sample.inputs)
         except ExportError:
             dst.unlink(missing_ok=True)
             raise

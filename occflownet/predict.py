@@ -1,10 +1,11 @@
-"""Prediction for one set of six camera images: the inputs, the model (ONNX file or torch), the outputs.
+"""Prediction for one set of six camera images: the image folder, the frame as the inference paths decode it, outputs.
 
 Inputs: a folder with one image per camera (``<CAMERA>.jpg``/``.jpeg``/``.png``) → uint8 [6, H, W, 3] RGB in
-``CAMERAS`` order; calibration and sessions are the contract's (:mod:`occflownet.contract`). Outputs: occupancy
-uint8 [200, 200, 16] ([x, y, z] of the ego frame, 17 = free) and density float32 [200, 200, 16], written as one
-.npz, and per-class counts. This module imports numpy at import time, OpenCV when it decodes an image and torch
-only inside :func:`model_from_source` and :func:`predict_torch`, so the onnxruntime path runs without torch.
+``CAMERAS`` order (:func:`load_frame`: JPEGs at reduced scale for the model's input size), and with its calibration
+→ the model's inputs (:meth:`Frame.inputs`, :func:`occflownet.runtime.frame_inputs`); the model is an
+:class:`occflownet.runtime.Predictor` (ONNX or torch). Outputs: occupancy uint8 [200, 200, 16] ([x, y, z] of the ego
+frame, 17 = free) and density float32 [200, 200, 16], written as one .npz, and per-class counts. Shipping wing: this
+module imports numpy (OpenCV when it decodes an image), never torch.
 """
 from __future__ import annotations
 
@@ -13,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.contract import calibration_arrays, decode_reduction, decode_rgb, image_header
+from occflownet.contract import decode_reduction, decode_rgb, image_header
 from occflownet.occ3d import CAMERAS, FREE, GRID
+from occflownet.runtime import ModelInputs, frame_inputs
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
@@ -39,11 +41,12 @@ class Frame:
     stored_size: tuple[int, int]
     reduction: int
 
-    def calibration_arrays(self, calib: dict) -> tuple[np.ndarray, np.ndarray]:
-        """(intrinsics float32 [6, 3, 3] for the decoded images, cam2ego float32 [6, 4, 4]) from calibration JSON
-        (for the stored size or one of its aspect ratio; scaled by 1/``reduction`` exactly)."""
-        w, h = self.stored_size
-        return calibration_arrays(calib, w, h, reduction=self.reduction)
+    def inputs(self, calib: dict) -> ModelInputs:
+        """The model's inputs for this frame (a batch of one) with calibration JSON ``calib`` (for the stored size
+        or one of its aspect ratio): the intrinsics for the decoded images, scaled by 1/``reduction`` exactly
+        (:func:`occflownet.runtime.frame_inputs`)."""
+        return frame_inputs(self.images, calib, sizes=[self.stored_size] * len(self.images),
+                            reductions=[self.reduction] * len(self.images))
 
 
 def find_camera_images(folder: str | Path) -> dict[str, Path]:
@@ -91,33 +94,6 @@ def load_image_folder(folder: str | Path) -> np.ndarray:
     """Six camera images of ``folder`` → uint8 [6, H, W, 3] RGB in ``CAMERAS`` order, decoded whole (all the same
     size)."""
     return load_frame(folder).images
-
-
-# ----------------------------------------------------------------------------------------------- torch model
-def model_from_source(checkpoint: str | Path | None = None, preset: str | None = None, seed: int | None = None):
-    """An ``OccupancyModel`` in eval mode from a checkpoint, or a randomly initialised preset (seeded: same seed →
-    same weights)."""
-    from occflownet.model import create_model, get_preset, load_checkpoint
-
-    if checkpoint is not None:
-        model, _, _ = load_checkpoint(checkpoint)
-        return model.eval()
-    if preset is None:
-        raise ValueError("need a checkpoint or a preset")
-    return create_model(get_preset(preset), seed=0 if seed is None else seed).eval()
-
-
-def predict_torch(model, images: np.ndarray, intrinsics: np.ndarray, cam2ego: np.ndarray):
-    """One sample through the torch model: images uint8 [6, H, W, 3], intrinsics [6, 3, 3], cam2ego [6, 4, 4] →
-    (occupancy uint8 [200, 200, 16], density float32 [200, 200, 16]); the same as the exported graph up to float
-    rounding."""
-    import torch
-
-    with torch.no_grad():
-        occ, dens = model.inference(torch.from_numpy(np.ascontiguousarray(images))[None],
-                                    torch.from_numpy(np.asarray(intrinsics, dtype=np.float32))[None],
-                                    torch.from_numpy(np.asarray(cam2ego, dtype=np.float32))[None])
-    return occ[0].numpy(), dens[0].numpy()
 
 
 # ----------------------------------------------------------------------------------------------- outputs

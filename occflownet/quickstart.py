@@ -139,11 +139,13 @@ def _train(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> Path:
 
 def _eval(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> dict:
     from occflownet.eval import dumps_json, format_table
-    from occflownet.eval.evaluate import checkpoint_predictor, evaluate, select_samples
+    from occflownet.eval.evaluate import evaluate, select_samples
+    from occflownet.model import model_from_source
+    from occflownet.runtime import TorchPredictor
 
     announce(["eval", "--checkpoint", str(paths.checkpoint), "--dataroot", str(paths.world), "--split", "val",
               "--save-predictions", str(paths.predictions), "--output", str(paths.eval_json)])
-    result = evaluate(select_samples(paths.world, None, "val"), checkpoint_predictor(paths.checkpoint),
+    result = evaluate(select_samples(paths.world, None, "val"), TorchPredictor(model_from_source(paths.checkpoint)),
                       save_predictions=paths.predictions)
     result = {"source": str(paths.checkpoint), "source_kind": "checkpoint", **result}
     print(format_table(result), file=sys.stderr)
@@ -153,7 +155,7 @@ def _eval(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> dict:
 
 def _export(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
     from occflownet.export.onnx_export import export_model
-    from occflownet.predict import model_from_source
+    from occflownet.model import model_from_source
 
     announce(["export", "--checkpoint", str(paths.checkpoint), "--out", str(paths.onnx)])
     model = model_from_source(paths.checkpoint)

@@ -8,8 +8,9 @@
   the sensor's pixel grid), refusing truncated files (JPEG without EOI after the scan, PNG without IEND).
 - the graph takes one [6, H, W, 3] tensor, so when the six images differ in size each one is resized to the
   :func:`common_size` (the size most cameras share; ties go to the earlier camera in camera order) while it is
-  decoded into its slice of the tensor, and :func:`intrinsics_for_size` scales its intrinsics by the same (sx, sy).
-  Images that already have the common size are decoded straight into place, untouched.
+  decoded into its slice of the tensor; its intrinsics are computed for that size in the one rescale of
+  :func:`occflownet.runtime.frame_calibration` (``serve/calibration.py``). Images that already have the common size
+  are decoded straight into place, untouched.
 """
 from __future__ import annotations
 
@@ -18,11 +19,10 @@ from collections import Counter
 import cv2
 import numpy as np
 
-from occflownet.contract import ImageHeader, decode_reduction, decode_rgb, image_header, reduced_size, scale_intrinsics
+from occflownet.contract import ImageHeader, decode_reduction, decode_rgb, image_header, reduced_size
 
 __all__ = ["ImageError", "ImageHeader", "check_header", "common_size", "decode_image", "decode_reduction",
-           "decoded_size", "image_header", "intrinsics_for_size"]
-
+           "decoded_size", "image_header"]
 
 
 class ImageError(ValueError):
@@ -97,11 +97,3 @@ def common_size(sizes: list[tuple[int, int]]) -> tuple[int, int]:
     best = max(counts.values())
     return next(s for s in sizes if counts[s] == best)
 
-
-def intrinsics_for_size(intrinsics: np.ndarray, sizes: list[tuple[int, int]], size: tuple[int, int]) -> np.ndarray:
-    """Intrinsics [6, 3, 3] (each for its image's (w_i, h_i) in ``sizes``) → float32 [6, 3, 3] for the images as
-    :func:`decode_image` resized them to ``size`` (w, h): the contract's pixel-centre rule
-    (:func:`occflownet.contract.scale_intrinsics`, sx = w / w_i, sy = h / h_i), exactly unchanged where the size
-    matches. No aspect-ratio check: the server made this resize itself, so it is known exactly."""
-    w, h = size
-    return np.stack([scale_intrinsics(K, w / wi, h / hi) for K, (wi, hi) in zip(intrinsics, sizes)]).astype(np.float32)

@@ -1,13 +1,18 @@
-"""The ONNX model behind the server: an onnxruntime session, its contract-v1 metadata, warm-up and inference.
+"""The ONNX model behind the server: an onnxruntime predictor, its contract-v1 metadata, warm-up and inference.
 
 Everything model-specific the server uses (cameras, classes, grid, colours, default calibration) comes from the
 model file's ``metadata_props`` (JSON values, docs/contracts.md), never from the training code.
 
 Contract v1 (checked at load time by :func:`occflownet.contract.check_session`, the same check as predict's and
-eval's; the session is made by :func:`occflownet.contract.create_session`):
+eval's; the session is made by :func:`occflownet.contract.create_session` and run by the one predictor path,
+:class:`occflownet.runtime.OnnxPredictor`):
 - inputs  ``images`` uint8 [B, 6, H, W, 3] RGB, ``intrinsics`` float32 [B, 6, 3, 3] (for that H×W),
   ``cam2ego`` float32 [B, 6, 4, 4] (OpenCV camera frame → ego frame);
 - outputs ``occupancy`` uint8 [B, X, Y, Z] (classes, ``free_index`` = free), ``density`` float32 [B, X, Y, Z].
+
+A request and the warm-up take the same path: :meth:`ModelRuntime.frame` (the tensor size and its calibration,
+before any pixel is decoded), :meth:`~occflownet.runtime.FrameCalibration.inputs` (the decoded images),
+:meth:`ModelRuntime.infer`.
 """
 from __future__ import annotations
 
@@ -18,9 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.contract import ContractError, ModelMetadata, check_session, make_feeds
+from occflownet.contract import ContractError, check_session, reduced_size
+from occflownet.runtime import FrameCalibration, ModelInputs, OnnxPredictor
 from occflownet.serve.calibration import request_calibration
-from occflownet.serve.decode import intrinsics_for_size
+from occflownet.serve.decode import common_size
 from occflownet.serve.settings import ServeSettings
 
 __all__ = ["ModelLoadError", "ModelRuntime"]
@@ -31,18 +37,18 @@ class ModelLoadError(RuntimeError):
 
 
 class ModelRuntime:
-    """One onnxruntime session plus its metadata. ``infer`` is thread-safe (ORT sessions allow concurrent runs)."""
+    """One onnxruntime predictor plus its metadata. ``infer`` is thread-safe (ORT sessions allow concurrent runs)."""
 
-    def __init__(self, session, metadata: ModelMetadata, path: Path, sha256: str):
-        self.session = session
-        self.metadata = metadata
+    def __init__(self, predictor: OnnxPredictor, path: Path, sha256: str):
+        self.predictor = predictor
+        self.metadata = predictor.metadata
         self.path = path
         self.sha256 = sha256
         self.ready = threading.Event()
         self.warmup_error: str | None = None
         self.warmup_seconds: float | None = None
         # (W, H) when the graph fixes the image size (contract v1 allows any; an export may still pin it), else None
-        shape = next(a.shape for a in session.get_inputs() if a.name == "images")
+        shape = next(a.shape for a in predictor.session.get_inputs() if a.name == "images")
         self.fixed_image_size = (shape[3], shape[2]) if all(isinstance(d, int) for d in shape[2:4]) else None
 
     @classmethod
@@ -70,26 +76,36 @@ class ModelRuntime:
         with open(path, "rb") as fh:
             for block in iter(lambda: fh.read(1 << 20), b""):
                 digest.update(block)
-        return cls(session, metadata, path, digest.hexdigest())
+        return cls(OnnxPredictor(session, metadata), path, digest.hexdigest())
 
-    def infer(self, images: np.ndarray, intrinsics: np.ndarray, cam2ego: np.ndarray) -> np.ndarray:
-        """One frame: images uint8 [6, H, W, 3] RGB, intrinsics float32 [6, 3, 3] for H×W, cam2ego float32
-        [6, 4, 4] → occupancy uint8 [X, Y, Z] (ego frame, [x, y, z], ``free_index`` = free)."""
-        (occ,) = self.session.run(["occupancy"], make_feeds(images[None], intrinsics[None], cam2ego[None]))
+    def frame(self, part: bytes | None, sizes: list[tuple[int, int]], reductions: list[int] | None = None
+              ) -> FrameCalibration:
+        """One frame's calibration, before its images are decoded: the image tensor's (w, h) — the graph's fixed
+        size, else the size most of the decoded images have (:func:`common_size`) — and the intrinsics for it
+        (:func:`request_calibration`: the ``calibration`` part, None for the model's default). ``sizes``: each
+        image's (w, h) as sent; ``reductions``: the 1/n each is decoded at. CalibrationError naming the camera."""
+        reductions = [1] * len(sizes) if reductions is None else reductions
+        decoded = [reduced_size(w, h, n) for (w, h), n in zip(sizes, reductions)]
+        size = self.fixed_image_size or common_size(decoded)
+        return request_calibration(part, self.metadata, sizes, reductions, size)
+
+    def infer(self, inputs: ModelInputs) -> np.ndarray:
+        """One frame (ModelInputs of a batch of one, :meth:`frame`'s ``inputs``) → occupancy uint8 [X, Y, Z] (ego
+        frame, [x, y, z], ``free_index`` = free)."""
+        (occ,) = self.predictor.predict(inputs, ("occupancy",))
         if occ.dtype != np.uint8 or occ.shape != (1, *self.metadata.grid_shape):
             raise RuntimeError(f"model returned occupancy {occ.dtype} {occ.shape}, metadata promises uint8 "
                                f"{(1, *self.metadata.grid_shape)}")
         return occ[0]
 
     def warm_up(self) -> None:
-        """Run one inference as a request without a calibration part would: black uint8 [6, h, w, 3] images of the
-        default calibration's size (or the graph's fixed size), the default calibration. Sets ``ready`` on success."""
+        """Run one inference as a request without a calibration part would, through the same :meth:`frame` and
+        :meth:`infer`: six black images at the default calibration's size. Sets ``ready`` on success."""
         size = tuple(int(v) for v in self.metadata.default_calibration["image_size"])
-        w, h = self.fixed_image_size or size
         t0 = time.perf_counter()
         try:
-            K, T = request_calibration(None, self.metadata, [size] * 6)
-            self.infer(np.zeros((6, h, w, 3), np.uint8), intrinsics_for_size(K, [size] * 6, (w, h)), T)
+            frame = self.frame(None, [size] * len(self.metadata.cameras))
+            self.infer(frame.inputs(np.zeros(frame.image_shape, np.uint8)))
         except Exception as exc:
             self.warmup_error = f"warm-up inference failed: {type(exc).__name__}: {exc}"
             raise

@@ -10,7 +10,7 @@ from occflownet import contract
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
 from occflownet.contract import (CalibrationError, ContractError, MissingCalibrationField, calibration_arrays,
                                  calibration_json,
-                                 check_signature, make_feeds, parse_metadata, rescale_intrinsics, scale_intrinsics,
+                                 check_signature, parse_metadata, rescale_intrinsics, scale_intrinsics,
                                  validate_calibration)
 from occflownet.rig import default_rig
 
@@ -88,6 +88,39 @@ def test_calibration_arrays_for_an_image_size_and_per_camera_sizes():
     np.testing.assert_allclose(K2, calibration_arrays(default_rig(480, 270))[0], rtol=1e-6, atol=1e-5)
     cal = validate_calibration(calib)
     assert cal.image_sizes == ((480, 270),) * 3 + ((960, 540),) + ((480, 270),) * 2
+
+
+def test_arrays_for_rescales_once_from_the_calibration_to_the_tensor():
+    """Calibration size → stored size → 1/n (reduced-scale JPEG) → the size the decoded image is resized to: one
+    rescale in float64 (pixel-centre rule), the composition of the three steps, exactly unchanged where a step
+    is the identity; the tensor step checks no aspect ratio (the resize is the caller's own, known exactly)."""
+    calib = default_rig(1600, 900)
+    cal = validate_calibration(calib)
+    K0s = np.array([c["intrinsic"] for c in calib["cameras"].values()])
+    sizes = [(1600, 900), (800, 450), (1600, 900), (3200, 1800), (1601, 901), (1600, 900)]
+    reductions = [2, 1, 1, 4, 2, 8]
+    K, T = cal.arrays_for(sizes, reductions=reductions, size=(800, 450))
+    assert K.dtype == T.dtype == np.float32
+    for i, ((w, h), n) in enumerate(zip(sizes, reductions)):
+        decoded = (-(-w // n), -(-h // n))
+        step = scale_intrinsics(scale_intrinsics(rescale_intrinsics(K0s[i], (1600, 900), (w, h)), 1 / n, 1 / n),
+                                800 / decoded[0], 450 / decoded[1])
+        np.testing.assert_allclose(K[i], step, rtol=1e-6)
+    np.testing.assert_array_equal(K[0], calibration_arrays(calib, 800, 450)[0][0])        # 1/2 == 800/1600
+    np.testing.assert_array_equal(cal.arrays_for(sizes[:1] * 6, reductions=[2] * 6, size=(800, 450))[0],
+                                  cal.arrays_for(sizes[:1] * 6, reductions=[2] * 6)[0])  # no third step
+    K_odd, _ = cal.arrays_for([(1601, 901)] * 6, reductions=[2] * 6, size=(900, 900))     # tensor: any aspect
+    assert K_odd[0, 0, 0] == pytest.approx(K0s[0, 0, 0] * 1601 / 1600 / 2 * 900 / 801, rel=1e-6)
+
+
+def test_calibration_from_a_datasets_arrays_is_taken_as_it_comes():
+    K = np.stack([np.array([[100.0 + i, 0, 40], [0, 100.0 + i, 30], [0, 0, 1]]) for i in range(6)]).astype(np.float32)
+    T = np.stack([np.eye(4)] * 6)
+    cal = contract.Calibration.from_arrays(K, T)
+    assert cal.cameras == CAMERAS and cal.image_sizes == (None,) * 6
+    K2, T2 = cal.arrays_for([(80, 60)] * 6)
+    np.testing.assert_array_equal(K2, K)
+    np.testing.assert_array_equal(T2, T.astype(np.float32))
 
 
 def test_calibration_json_is_what_calibration_arrays_reads_back():
@@ -176,15 +209,6 @@ def test_check_signature():
         check_signature(GOOD_IN[:2] + [("cam2ego", "float32", [None, 5, 4, 4])], GOOD_OUT, "m.onnx")
     assert contract.INPUT_NAMES == ("images", "intrinsics", "cam2ego")
     assert [s.onnx_elem_type for s in contract.OUTPUTS] == [2, 1]
-
-
-def test_make_feeds_casts_and_checks_shapes():
-    feeds = make_feeds(np.zeros((1, 6, 9, 16, 3)), np.zeros((1, 6, 3, 3), np.float64), np.zeros((1, 6, 4, 4)))
-    assert [v.dtype for v in feeds.values()] == [np.uint8, np.float32, np.float32]
-    with pytest.raises(ValueError, match="cam2ego"):
-        make_feeds(np.zeros((1, 6, 9, 16, 3)), np.zeros((1, 6, 3, 3)), np.zeros((1, 6, 3, 3)))
-    with pytest.raises(ValueError, match="batch sizes differ"):
-        make_feeds(np.zeros((2, 6, 9, 16, 3)), np.zeros((1, 6, 3, 3)), np.zeros((1, 6, 4, 4)))
 
 
 def _metadata():

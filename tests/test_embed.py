@@ -97,12 +97,12 @@ def python_frame(model: Path, folder: Path):
 def python_reference(model: Path, folder: Path, calib_path: Path):
     """What Python onnxruntime gives on ``folder`` decoded as ``predict`` decodes it: (images, intrinsics,
     occupancy, density)."""
-    from occflownet.contract import create_session, run_session
+    from occflownet.runtime import OnnxPredictor
 
     frame = python_frame(model, folder)
-    K, T = frame.calibration_arrays(json.loads(Path(calib_path).read_text()))
-    occupancy, density = run_session(create_session(model), frame.images, K, T)
-    return frame.images, K, occupancy, density
+    inputs = frame.inputs(json.loads(Path(calib_path).read_text()))
+    occupancy, density = OnnxPredictor.open(model)(inputs)
+    return frame.images, inputs.intrinsics[0], occupancy[0], density[0]
 
 
 def cpp_run(binary: Path, model: Path, folder: Path, calib: Path | None, out: Path, runs: int = 1):

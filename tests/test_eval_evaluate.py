@@ -36,9 +36,10 @@ def _label_predictor(root, corrupt=None):
     """A batched predictor that recognises each sample by its images and returns (a function of) its labels."""
     table = _labels_by_images(root)
 
-    def predict(images, intrinsics, cam2ego):
+    def predict(inputs):
+        images = inputs.images
         assert images.dtype == np.uint8 and images.ndim == 5 and images.shape[1] == 6
-        assert intrinsics.shape == (len(images), 6, 3, 3) and cam2ego.shape == (len(images), 6, 4, 4)
+        assert inputs.intrinsics.shape == (len(images), 6, 3, 3) and inputs.cam2ego.shape == (len(images), 6, 4, 4)
         labels = [table[hashlib.sha1(im.tobytes()).hexdigest()] for im in images]
         occ = np.stack([lab.semantics if corrupt is None else corrupt(lab) for lab in labels])
         return occ, (occ != FREE).astype(np.float32)

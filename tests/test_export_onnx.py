@@ -11,7 +11,8 @@ from occflownet.export import onnx_export, parity
 from occflownet.export.parity import check_parity, compare, default_parity_samples, frame_sample
 from occflownet import __version__
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
-from occflownet.contract import METADATA_KEYS, create_session, decode_metadata, run_session
+from occflownet.contract import METADATA_KEYS, create_session, decode_metadata
+from occflownet.runtime import ModelInputs, OnnxPredictor
 from occflownet.contract import calibration_arrays
 from occflownet.rig import default_rig
 
@@ -94,7 +95,7 @@ def test_parity_on_the_real_frame_with_argmax_in_play(exported):
     onnx.save(proto, str(shifted))
     cases = check_parity(model, shifted, [frame_sample(FRAME, 1), sample], model.cfg.threshold)
     assert all(c.ok for c in cases), [c.describe() for c in cases]
-    occ, _ = run_session(create_session(shifted), sample.images, sample.intrinsics, sample.cam2ego)
+    occ, _ = OnnxPredictor.open(shifted)(sample.inputs)
     occupied = np.mean(occ != 17)
     assert 0.2 < occupied < 0.8 and len(np.unique(occ)) >= 3      # free + several classes
 
@@ -106,7 +107,7 @@ def test_dynamic_batch_and_image_size(exported):
     rng = np.random.default_rng(3)
     images = rng.integers(0, 256, (3, 6, 128, 200, 3), dtype=np.uint8)
     Ks, Ts = np.stack([K] * 3), np.stack([T] * 3)
-    occ, dens = run_session(session, images, Ks, Ts)
+    occ, dens = OnnxPredictor(session)(ModelInputs(images, Ks, Ts))
     assert occ.shape == (3, 200, 200, 16) and occ.dtype == np.uint8 and dens.dtype == np.float32
     with torch.no_grad():
         occ_t, dens_t = model.inference(torch.from_numpy(images), torch.from_numpy(Ks), torch.from_numpy(Ts))

@@ -14,7 +14,8 @@ import pytest
 from exported_models import FRAME, exported_trained_tiny, frame_available
 from occflownet.export import onnx_export
 from occflownet.export.parity import default_parity_samples, frame_sample
-from occflownet.contract import create_session, run_session
+from occflownet.contract import create_session
+from occflownet.runtime import OnnxPredictor
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +28,7 @@ def test_trained_export_passes_parity_with_occupied_voxels(trained):
     assert all(c.ok for c in result.parity), result.summary()
     assert max(c.density_max_abs_diff for c in result.parity) < 2e-5
     sample = default_parity_samples(model.cfg)[0]
-    occ, _ = run_session(create_session(path), sample.images, sample.intrinsics, sample.cam2ego)
+    occ, _ = OnnxPredictor.open(path)(sample.inputs)
     assert 0.005 < np.mean(occ != 17) < 0.2                        # a grid with things in it, not all free
     ops = {(n.op_type, next((a.s.decode() for a in n.attribute if a.name == "reduction"), "none"))
            for n in onnx.load(str(path)).graph.node if n.op_type.startswith("Scatter")}
@@ -54,8 +55,8 @@ def test_onnxruntime_gives_the_same_bits_on_every_run_at_four_threads(trained):
     """The old ScatterND(add) graph disagreed with itself in 10 of 25 runs at 4 threads; now every run is equal."""
     path, _, model = trained
     sample = frame_sample(FRAME) if frame_available() else default_parity_samples(model.cfg)[0]
-    session = create_session(path, threads=4)
-    first = run_session(session, sample.images, sample.intrinsics, sample.cam2ego)
+    predictor = OnnxPredictor(create_session(path, threads=4))
+    first = predictor(sample.inputs)
     for _ in range(8):
-        occ, dens = run_session(session, sample.images, sample.intrinsics, sample.cam2ego)
+        occ, dens = predictor(sample.inputs)
         assert np.array_equal(occ, first[0]) and np.array_equal(dens, first[1])

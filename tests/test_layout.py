@@ -1,15 +1,18 @@
 """The layout rules of the repository, checked on the source tree (docs/layout.md).
 
-- imports run along the data flow: every module belongs to one layer and imports only from its own layer or the
-  ones before it (core → data → labels → synth → model → render → train → eval → predict → export → serve →
-  quickstart → commands → cli), and no two modules import each other, directly or through others;
+- imports run along the data flow: every module belongs to one stage and imports only from its own stage or the
+  ones it builds on (:data:`STAGES`): the core, then two wings — training (data → labels → synth → model → render →
+  train → eval) and shipping (runtime → predict, serve; the runtime is the one predictor path) —, export the bridge
+  between them, then quickstart → commands → cli; no two modules import each other, directly or through others;
 - no function is longer than 60 lines, except a numba kernel or one whose docstring gives the reason
   (a line starting with ``Long:``);
 - the packages pyproject.toml installs are the package folders of the tree;
 - README.md's tour names every package and top-level module, and every path it names exists;
 - the documentation is self-contained (no pointer to notes outside the repository);
 - each contract has one definition: the ONNX tensor names and the HTTP error body are spelled out once;
-- files are written atomically one way (`occflownet.files.atomic_path`).
+- files are written atomically one way (`occflownet.files.atomic_path`);
+- one predictor path: only ``occflownet/runtime.py`` builds model feeds and runs an onnxruntime session, and only
+  the contract rescales intrinsics.
 """
 from __future__ import annotations
 
@@ -24,26 +27,43 @@ PACKAGE_DIRS = {"occflownet": REPO / "occflownet", "occflownet.export": REPO / "
                 "occflownet.serve": REPO / "serve"}
 MAX_LINES = 60
 
-# Layers in data-flow order; a module's layer is that of its longest matching prefix.
-LAYERS = (
+# Stages: (name, module prefixes, the stages it builds on). A module's stage is that of its longest matching prefix;
+# it may import from its own stage and from every stage it builds on, directly or through them.
+STAGES = (
     ("core", ("occflownet", "occflownet.occ3d", "occflownet.geometry", "occflownet.rig", "occflownet.contract",
               "occflownet.pictures", "occflownet.voxel_walk", "occflownet.voxel_walk_numba", "occflownet.files",
               "occflownet.choices", "occflownet.options",
-              "occflownet.viewer")),
-    ("data", ("occflownet.data",)),
-    ("labels", ("occflownet.labels",)),
-    ("synth", ("occflownet.synth",)),
-    ("model", ("occflownet.model",)),
-    ("render", ("occflownet.render",)),
-    ("train", ("occflownet.train",)),
-    ("eval", ("occflownet.eval",)),
-    ("predict", ("occflownet.predict",)),
-    ("export", ("occflownet.export",)),
-    ("serve", ("occflownet.serve",)),
-    ("quickstart", ("occflownet.quickstart",)),
-    ("commands", ("occflownet.commands",)),
-    ("cli", ("occflownet.cli", "occflownet.__main__")),
+              "occflownet.viewer"), ()),
+    # the training wing
+    ("data", ("occflownet.data",), ("core",)),
+    ("labels", ("occflownet.labels",), ("data",)),
+    ("synth", ("occflownet.synth",), ("labels",)),
+    ("model", ("occflownet.model",), ("synth",)),
+    ("render", ("occflownet.render",), ("model",)),
+    ("train", ("occflownet.train",), ("render",)),
+    # the shipping wing (torch-free: the runtime's torch predictor is handed a model, it imports no model code)
+    ("runtime", ("occflownet.runtime",), ("core",)),
+    ("predict", ("occflownet.predict",), ("runtime",)),
+    ("serve", ("occflownet.serve",), ("runtime",)),
+    # evaluation runs the training wing's data through the one predictor path; export bridges the wings
+    ("eval", ("occflownet.eval",), ("train", "runtime")),
+    ("export", ("occflownet.export",), ("eval", "predict")),
+    ("quickstart", ("occflownet.quickstart",), ("export", "serve")),
+    ("commands", ("occflownet.commands",), ("quickstart",)),
+    ("cli", ("occflownet.cli", "occflownet.__main__"), ("commands",)),
 )
+
+
+def _builds_on() -> dict[str, set[str]]:
+    """{stage: the stages it may import from (itself and everything it builds on, transitively)}."""
+    direct = {name: set(bases) for name, _, bases in STAGES}
+    out = {}
+    for name, _, _ in STAGES:                                   # STAGES lists every stage after its bases
+        out[name] = {name}.union(*(out[b] for b in direct[name]))
+    return out
+
+
+BUILDS_ON = _builds_on()
 
 
 def _modules() -> dict[str, Path]:
@@ -90,26 +110,31 @@ def _imports(name: str, path: Path) -> set[str]:
 GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
 
 
-def _layer(name: str) -> int:
-    best, rank = -1, None
-    for i, (_, prefixes) in enumerate(LAYERS):
+def _stage(name: str) -> str:
+    best, stage = -1, None
+    for candidate, prefixes, _ in STAGES:
         for p in prefixes:
             if (name == p or name.startswith(p + ".")) and len(p) > best:
-                best, rank = len(p), i
-    if rank is None:
-        raise AssertionError(f"{name} belongs to no layer: add it to LAYERS in tests/test_layout.py")
-    return rank
+                best, stage = len(p), candidate
+    if stage is None:
+        raise AssertionError(f"{name} belongs to no stage: add it to STAGES in tests/test_layout.py")
+    return stage
 
 
-def test_every_module_has_a_layer():
+def test_every_module_has_a_stage():
     for name in MODULES:
-        _layer(name)
+        _stage(name)
+
+
+def test_stages_build_only_on_earlier_stages():
+    order = [name for name, _, _ in STAGES]
+    assert all(order.index(b) < order.index(name) for name, _, bases in STAGES for b in bases)
 
 
 def test_imports_run_along_the_data_flow():
-    wrong = [f"{a} ({LAYERS[_layer(a)][0]}) imports {b} ({LAYERS[_layer(b)][0]})"
+    wrong = [f"{a} ({_stage(a)}) imports {b} ({_stage(b)})"
              for a, targets in GRAPH.items() for b in targets
-             if _layer(b) > _layer(a) and b != "occflownet"]
+             if _stage(b) not in BUILDS_ON[_stage(a)] and b != "occflownet"]
     assert not wrong, "imports against the data flow:\n  " + "\n  ".join(sorted(wrong))
 
 
@@ -232,4 +257,82 @@ def test_calibration_json_built_in_one_place():
     hits = [str(p.relative_to(REPO)) for p in package for node in ast.walk(ast.parse(p.read_text()))
             if isinstance(node, ast.Dict)
             and {k.value for k in node.keys if isinstance(k, ast.Constant)} == {"intrinsic", "cam2ego"}]
+    assert hits == ["occflownet/contract/calibration.py"], hits
+
+
+# ----------------------------------------------------------------------------------------------- one predictor path
+FEEDS_MODULE = "occflownet/runtime.py"
+# Files whose dicts keyed by input names or whose ``.run`` calls are not contract-v1 model feeds, and why.
+NOT_MODEL_FEEDS = {
+    "occflownet/train/dataset.py": "the training batch (torch tensors for the loss), not an onnxruntime feed",
+    "benchmarks/bench_preprocess.py": "feeds the preprocessing sub-graph alone (images, intrinsics → x, k)",
+}
+NOT_SESSIONS = {"subprocess", "uvicorn", "asyncio"}               # ``X.run(...)`` that runs no model
+
+
+def _input_names() -> set[str]:
+    from occflownet.contract import INPUT_NAMES
+
+    return set(INPUT_NAMES)
+
+
+def _feed_like(node: ast.AST, names: set[str]) -> bool:
+    """A dict literal or ``dict(...)`` call keyed by two or more contract input names whose values are not all dict
+    literals (a dict of dicts is a per-input spec, e.g. the dynamic axes of an export), or a dict built over the
+    contract's input list (``{s.name: ... for s in INPUTS}``, ``dict(zip(INPUT_NAMES, ...))``, a loop over it that
+    assigns ``feeds[spec.name] = ...``)."""
+    over_inputs = re.compile(r"\bINPUT(S|_NAMES)\b")
+    if isinstance(node, ast.DictComp) or (isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
+                                          and node.func.id == "dict" and node.args):
+        return bool(over_inputs.search(ast.unparse(node)))
+    if isinstance(node, ast.For) and over_inputs.search(ast.unparse(node.iter)):
+        return any(isinstance(t, ast.Subscript) for n in node.body for a in ast.walk(n) if isinstance(a, ast.Assign)
+                   for t in a.targets)
+    if isinstance(node, ast.Dict):
+        keys = [k.value for k in node.keys if isinstance(k, ast.Constant)]
+        values = node.values
+    elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "dict":
+        keys = [k.arg for k in node.keywords]
+        values = [k.value for k in node.keywords]
+    else:
+        return False
+    return len(names & set(keys)) >= 2 and not all(isinstance(v, ast.Dict) for v in values)
+
+
+def _runs_a_session(node: ast.AST) -> bool:
+    """``X.run(...)`` (onnxruntime ``InferenceSession.run`` and its kin) on anything but subprocess/uvicorn/asyncio."""
+    return (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+            and node.func.attr in ("run", "run_async", "run_with_iobinding", "run_with_ort_values")
+            and not (isinstance(node.func.value, ast.Name) and node.func.value.id in NOT_SESSIONS))
+
+
+def test_one_place_builds_model_feeds_and_runs_sessions():
+    """Images + calibration become model feeds in ``occflownet/runtime.py`` only, and only it runs an onnxruntime
+    session (docs/layout.md, "One predictor"): no other source file builds a dict keyed by the contract's input
+    names or calls ``session.run``."""
+    names = _input_names()
+    sources = [p for p in _python_files() if "tests" not in p.relative_to(REPO).parts]
+    hits = []                                                    # (file, what, line)
+    for path in sources:
+        rel = str(path.relative_to(REPO))
+        if rel in NOT_MODEL_FEEDS:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if _feed_like(node, names):
+                hits.append((rel, "builds a feed dict", node.lineno))
+            elif _runs_a_session(node):
+                hits.append((rel, "runs a session", node.lineno))
+    found = {(rel, what) for rel, what, _ in hits}
+    assert found == {(FEEDS_MODULE, "builds a feed dict"), (FEEDS_MODULE, "runs a session")}, \
+        "\n  ".join(f"{rel}:{line} {what}" for rel, what, line in hits)
+
+
+def test_intrinsics_are_rescaled_in_one_place():
+    """The pixel-centre rescaling rule is applied in ``occflownet/contract/calibration.py`` only (through
+    ``Calibration.arrays_for``, which the one feeds function calls): no other source file scales intrinsics."""
+    rule = {"scale_intrinsics", "rescale_intrinsics", "resize_matrix"}
+    sources = [p for p in _python_files() if "tests" not in p.relative_to(REPO).parts]
+    hits = sorted({str(p.relative_to(REPO)) for p in sources for node in ast.walk(ast.parse(p.read_text()))
+                   if isinstance(node, ast.Call) and (getattr(node.func, "id", None) in rule
+                                                      or getattr(node.func, "attr", None) in rule)})
     assert hits == ["occflownet/contract/calibration.py"], hits

@@ -158,7 +158,7 @@ def test_jpegs_are_decoded_at_the_scale_the_graph_would_keep():
         shifted = cv2.resize(np.roll(whole[i], -1, axis=1), (800, 450), interpolation=cv2.INTER_AREA)
         err, err_shifted = (np.abs(frame.images[i] - a)[5:-5, 5:-5].mean() for a in (area, shifted))
         assert err < 0.5 and err_shifted > 4 * err, (i, err, err_shifted)   # measured 0.31-0.34 vs 1.7-2.7
-    K, _ = frame.calibration_arrays(json.loads((FRAME / "calib.json").read_text()))
+    K = frame.inputs(json.loads((FRAME / "calib.json").read_text())).intrinsics[0]
     K_whole, _ = calibration_arrays(json.loads((FRAME / "calib.json").read_text()), 1600, 900)
     np.testing.assert_allclose(K[:, :2, :2], K_whole[:, :2, :2] / 2, rtol=1e-6)
     np.testing.assert_allclose(K[:, :2, 2], (K_whole[:, :2, 2] + 0.5) / 2 - 0.5, rtol=1e-6)

@@ -11,7 +11,7 @@ import pytest
 
 from exported_models import FRAME, exported_trained_tiny, frame_available
 from occflownet.export.parity import compare, frame_sample
-from occflownet.contract import create_session, run_session
+from occflownet.runtime import OnnxPredictor
 
 pytestmark = pytest.mark.skipif(not frame_available(), reason=f"real frame not found at {FRAME}")
 
@@ -21,13 +21,13 @@ def reference():
     """(model path, threshold τ, sample, onnxruntime occupancy, onnxruntime density) on the real frame."""
     path, _, model = exported_trained_tiny()
     sample = frame_sample(FRAME)
-    occ, dens = run_session(create_session(path), sample.images, sample.intrinsics, sample.cam2ego)
+    occ, dens = OnnxPredictor.open(path)(sample.inputs)
     assert np.mean(occ != 17) > 0.005                                    # something to disagree about
     return path, model.cfg.threshold, sample, occ, dens
 
 
 def _feeds(sample):
-    return {"images": sample.images, "intrinsics": sample.intrinsics, "cam2ego": sample.cam2ego}
+    return sample.inputs.feeds()
 
 
 def test_no_resize_antialias_anywhere(reference):

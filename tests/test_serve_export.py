@@ -86,7 +86,8 @@ def test_real_export_served_over_http_matches_a_direct_run(tiny_model):
         assert r.status_code == 200, r.text
         np.testing.assert_array_equal(np.load(io.BytesIO(r.content)), expected)
         # a random-init model may predict one class everywhere, so also check the tensors themselves
-        (got_images, got_K, got_T), = fed
+        (inputs,), = fed
+        got_images, got_K, got_T = inputs.images[0], inputs.intrinsics[0], inputs.cam2ego[0]
         np.testing.assert_array_equal(got_images, images)
         np.testing.assert_allclose(got_K, K, rtol=1e-6)
         np.testing.assert_allclose(got_T, T, rtol=1e-6)
@@ -153,9 +154,10 @@ def test_predict_and_http_give_identical_grids_for_the_frame_and_its_half_size_c
             served = _serve_folder(client, folder, calib_bytes)
             np.testing.assert_array_equal(served, predicted)
             grids[name] = served
-            (_, got_K, _), = fed
+            (inputs,), = fed
+            got_K = inputs.intrinsics[0]
             # the 1600x900 JPEGs are decoded at half scale (tiny), the 800x450 PNGs whole: both fed 800x450
-            assert fed[0][0].shape == (6, 450, 800, 3)
+            assert inputs.images.shape == (1, 6, 450, 800, 3)
             np.testing.assert_array_equal(got_K, calibration_arrays(calib, 800, 450)[0])
     K_full, K_half = calibration_arrays(calib, 1600, 900)[0], calibration_arrays(calib, 800, 450)[0]
     np.testing.assert_allclose(K_half[:, :2, :2], K_full[:, :2, :2] / 2, rtol=1e-6)

@@ -15,11 +15,10 @@ from serve_fixtures import FRAME_DIR, encode_image, fake_metadata, metric_sample
 
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, FREE
 from occflownet.rig import default_rig
-from occflownet.contract import CalibrationError, ContractError, parse_metadata, scale_intrinsics
+from occflownet.contract import CalibrationError, ContractError, calibration_json, parse_metadata, scale_intrinsics
 from occflownet.serve.calibration import request_calibration
 from occflownet.serve.client import ServerNotReady, wait_ready
-from occflownet.serve.decode import (ImageError, check_header, common_size, decode_image, image_header,
-                                    intrinsics_for_size)
+from occflownet.serve.decode import ImageError, check_header, common_size, decode_image, image_header
 from occflownet.pictures import top_down
 from occflownet.serve.encode import NotAcceptable, encode, negotiate
 from occflownet.serve.limits import BodySizeLimitMiddleware, InferenceGate, Saturated
@@ -109,13 +108,16 @@ def test_common_size_decode_into_place_and_intrinsics():
     decode_image("CAM_BACK", encode_image(small[1]), 10**6, out=frame[1])  # decoded in place, untouched
     np.testing.assert_array_equal(frame[0], cv2.resize(big, (96, 54), interpolation=cv2.INTER_AREA))
     np.testing.assert_array_equal(frame[1], small[1])
-    K = np.tile(np.array([[100.0, 0, 48], [0, 100.0, 27], [0, 0, 1]], np.float32), (6, 1, 1))
-    # CAM_FRONT's intrinsics are for its 192x108 image (pixel-centre rule: f·2, (c + 0.5)·2 − 0.5)
+    # CAM_FRONT's intrinsics are for its 192x108 image (pixel-centre rule: f·2, (c + 0.5)·2 − 0.5); resized to the
+    # common size 96x54 its intrinsics are halved back exactly, in the one rescale; the others are unchanged
+    K = np.tile(np.array([[100.0, 0, 48], [0, 100.0, 27], [0, 0, 1]]), (6, 1, 1))
     K[0] = scale_intrinsics(K[0], 2.0, 2.0)
     np.testing.assert_allclose(K[0], [[200, 0, 96.5], [0, 200, 54.5], [0, 0, 1]])
-    K2 = intrinsics_for_size(K, [(192, 108)] + [(96, 54)] * 5, (96, 54))
-    assert K2.dtype == np.float32
-    np.testing.assert_allclose(K2, np.tile(K[1], (6, 1, 1)))         # halved back exactly; the others unchanged
+    calib = calibration_json(K, np.tile(np.eye(4), (6, 1, 1)), (96, 54))
+    calib["cameras"]["CAM_FRONT"]["image_size"] = [192, 108]
+    frame = request_calibration(_part(calib), _Meta, [(192, 108)] + [(96, 54)] * 5, size=(96, 54))
+    assert frame.intrinsics.dtype == np.float32 and frame.size == (96, 54)
+    np.testing.assert_allclose(frame.intrinsics, np.tile(K[1], (6, 1, 1)))
 
 
 # ---------------------------------------------------------------- calibration of a request (rules: the contract's)
@@ -161,7 +163,8 @@ def test_calibration_part_that_is_not_a_json_object_names_the_part():
 
 
 def test_default_calibration_scaled_for_same_aspect_and_refused_otherwise():
-    K, T = request_calibration(None, _Meta, [(960, 540)] * 6)
+    frame = request_calibration(None, _Meta, [(960, 540)] * 6)
+    K, T = frame.intrinsics, frame.cam2ego
     K480 = np.array(_calib()["cameras"]["CAM_FRONT"]["intrinsic"])
     # pixel-centre rule, as predict and the model's preprocessing: f' = 2f, c' = (c + 0.5)·2 − 0.5
     np.testing.assert_allclose(K[0], [[2 * K480[0, 0], 0, 2 * K480[0, 2] + 0.5],
@@ -177,7 +180,7 @@ def test_default_calibration_scaled_for_same_aspect_and_refused_otherwise():
 def test_request_calibration_without_size_is_taken_as_is():
     calib = _calib()
     calib.pop("image_size")
-    K, _ = request_calibration(_part(calib), _Meta, [(123, 77)] * 6)
+    K = request_calibration(_part(calib), _Meta, [(123, 77)] * 6).intrinsics
     np.testing.assert_allclose(K[0], np.array(calib["cameras"]["CAM_FRONT"]["intrinsic"]), rtol=1e-6)
 
 
@@ -186,7 +189,7 @@ def test_per_camera_image_size_overrides_top_level():
     calib["cameras"]["CAM_BACK"]["image_size"] = [960, 540]
     K480 = np.array(calib["cameras"]["CAM_BACK"]["intrinsic"])
     calib["cameras"]["CAM_BACK"]["intrinsic"] = scale_intrinsics(K480, 2.0, 2.0).tolist()   # for 960x540
-    K, _ = request_calibration(_part(calib), _Meta, [(480, 270)] * 6)
+    K = request_calibration(_part(calib), _Meta, [(480, 270)] * 6).intrinsics
     np.testing.assert_allclose(K[3], np.array(_calib()["cameras"]["CAM_BACK"]["intrinsic"]), rtol=1e-6)
 
 

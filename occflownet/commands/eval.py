@@ -69,13 +69,14 @@ def run(args) -> int:
             raise FileNotFoundError(f"{what} not found: {source}")
         samples = select_samples(args.dataroot, args.version, args.split, args.max_samples)
         if args.model:
-            from occflownet.eval.evaluate import onnx_predictor
+            from occflownet.runtime import OnnxPredictor
 
-            predict = onnx_predictor(args.model, args.threads)
+            predict = OnnxPredictor.open(args.model, args.threads)
         else:
-            from occflownet.eval.evaluate import checkpoint_predictor
+            from occflownet.model import model_from_source
+            from occflownet.runtime import TorchPredictor
 
-            predict = checkpoint_predictor(args.checkpoint)
+            predict = TorchPredictor(model_from_source(args.checkpoint))
         result = evaluate(samples, predict, batch_size=args.batch_size, save_predictions=args.save_predictions,
                           rayiou=not args.no_rayiou, progress=not args.quiet,
                           fog_horizon=None if args.no_fog else 3)

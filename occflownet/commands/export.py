@@ -22,8 +22,7 @@ def run(args) -> int:
         print(f"occflownet export: {problem}", file=sys.stderr)
         return 2
     from occflownet.export.onnx_export import ExportError, export_model
-    from occflownet.model import CheckpointError
-    from occflownet.predict import model_from_source
+    from occflownet.model import CheckpointError, model_from_source
 
     try:
         model = model_from_source(args.checkpoint, args.preset, args.seed)

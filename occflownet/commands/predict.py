@@ -26,6 +26,7 @@ def run(args) -> int:
 
     from occflownet import contract, pictures, predict, viewer
     from occflownet.occ3d import CLASS_NAMES, FREE
+    from occflownet.runtime import OnnxPredictor, TorchPredictor
 
     problem = source_problem(args)
     if problem:
@@ -33,19 +34,16 @@ def run(args) -> int:
         return 2
     try:
         if args.model:
-            session = contract.create_session(args.model, args.threads)
-            input_size = contract.check_session(session, args.model).input_size
+            predictor = OnnxPredictor.open(args.model, args.threads)
         else:
-            model = predict.model_from_source(args.checkpoint, args.preset, args.seed)
-            input_size = model.cfg.input_size
-        frame = predict.load_frame(args.images, input_size)      # JPEGs at reduced scale (docs/contracts.md)
+            from occflownet.model import model_from_source
+
+            predictor = TorchPredictor(model_from_source(args.checkpoint, args.preset, args.seed))
+        frame = predict.load_frame(args.images, predictor.input_size)   # JPEGs at reduced scale (docs/contracts.md)
         calib = contract.load_calibration(args.calib)
-        K, T = frame.calibration_arrays(calib)
+        inputs = frame.inputs(calib)
         t0 = time.perf_counter()
-        if args.model:
-            occupancy, density = contract.run_session(session, frame.images, K, T)
-        else:
-            occupancy, density = predict.predict_torch(model, frame.images, K, T)
+        occupancy, density = (batch[0] for batch in predictor(inputs))      # the one frame of the batch
         seconds = time.perf_counter() - t0
         predict.save_grid(args.out, occupancy, density)
         if args.png:

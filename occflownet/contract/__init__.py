@@ -5,7 +5,7 @@ and ``eval --model`` (onnxruntime), ``serve/`` (HTTP), embedders — takes its n
 calibration checks, intrinsics rescaling and onnxruntime sessions from here. Importing this package imports numpy and
 :mod:`occflownet.occ3d` only: no torch, no onnx; onnxruntime only when a session is made.
 
-Modules: :mod:`~occflownet.contract.tensors` (the tensors, signature check, feeds),
+Modules: :mod:`~occflownet.contract.tensors` (the tensors, signature check),
 :mod:`~occflownet.contract.metadata` (metadata keys and parsing), :mod:`~occflownet.contract.calibration`
 (calibration JSON and the rescaling rule), :mod:`~occflownet.contract.images` (image decoding, the graph's crop
 window, reduced-scale JPEG decoding),
@@ -43,6 +43,9 @@ model's own preprocessing): an image resized by (sx, sy) = (w'/w, h'/h) has ``f'
 ``c' = (c + 0.5)·s − 0.5``, i.e. ``K' = A·K`` with ``A = [[sx, 0, (sx − 1)/2], [0, sy, (sy − 1)/2], [0, 0, 1]]``
 (:func:`scale_intrinsics`). Only a uniform resize keeps a calibration valid: the aspect ratios must agree within
 :data:`ASPECT_TOLERANCE`, else :class:`CalibrationError` (the image was cropped or padded in an unknown way).
+The rule is applied in one place, :meth:`Calibration.arrays_for` (calibration size → stored size → 1/n of a JPEG
+decoded at reduced scale → the size a decoded image was resized to), which every inference path reaches through
+:func:`occflownet.runtime.frame_inputs`.
 """
 from __future__ import annotations
 from occflownet.contract.calibration import (ASPECT_TOLERANCE, ORTHONORMAL_TOLERANCE, SINGULAR_TOLERANCE, Calibration,
@@ -54,9 +57,9 @@ from occflownet.contract.images import (JPEG_REDUCTIONS, ImageHeader, crop_windo
                                         image_header, reduced_size)
 from occflownet.contract.metadata import (METADATA_KEYS, REQUIRED_METADATA_KEYS, ModelMetadata, decode_metadata,
                                           encode_metadata, parse_metadata)
-from occflownet.contract.session import check_session, create_session, run_session
+from occflownet.contract.session import check_session, create_session
 from occflownet.contract.tensors import (CONTRACT_VERSION, INPUT_NAMES, INPUTS, NUM_CAMERAS, OUTPUT_NAMES, OUTPUTS,
-                                         ContractError, TensorSpec, check_signature, make_feeds, session_signature)
+                                         ContractError, TensorSpec, check_signature, session_signature)
 
 __all__ = [
     "ASPECT_TOLERANCE", "ORTHONORMAL_TOLERANCE", "SINGULAR_TOLERANCE", "Calibration", "CalibrationError",
@@ -64,7 +67,7 @@ __all__ = [
     "rescale_intrinsics", "resize_matrix", "scale_intrinsics", "validate_calibration",
     "JPEG_REDUCTIONS", "ImageHeader", "crop_window", "decode_reduction", "decode_rgb", "image_header",
     "reduced_size", "METADATA_KEYS", "REQUIRED_METADATA_KEYS", "ModelMetadata", "decode_metadata", "encode_metadata",
-    "parse_metadata", "check_session", "create_session", "run_session",
+    "parse_metadata", "check_session", "create_session",
     "CONTRACT_VERSION", "INPUT_NAMES", "INPUTS", "NUM_CAMERAS", "OUTPUT_NAMES", "OUTPUTS", "ContractError",
-    "TensorSpec", "check_signature", "make_feeds", "session_signature",
+    "TensorSpec", "check_signature", "session_signature",
 ]

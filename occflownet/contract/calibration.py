@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occflownet.contract.images import reduced_size
 from occflownet.occ3d import CAMERAS
 
 ASPECT_TOLERANCE = 0.01          # relative difference of w/h allowed when rescaling intrinsics
@@ -40,23 +41,40 @@ class Calibration:
     cam2ego: np.ndarray
     image_sizes: tuple[tuple[int, int] | None, ...]
 
-    def arrays_for(self, sizes: Sequence[tuple[int, int]], source: str = "the calibration",
-                   remedy: str = "a calibration", reductions: Sequence[int] | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
-        """(intrinsics float32 [V, 3, 3] for each camera's actual image size (w, h) in ``sizes``, cam2ego float32
-        [V, 4, 4]): intrinsics rescaled by the pixel-centre rule where a camera's calibrated size differs.
-        CalibrationError naming the camera when the aspect ratio differs (``source`` names the calibration,
-        ``remedy`` what the user should send instead).
+    @classmethod
+    def from_arrays(cls, intrinsics: np.ndarray, cam2ego: np.ndarray, cameras: Sequence[str] = CAMERAS
+                    ) -> "Calibration":
+        """A dataset's own arrays as a calibration: intrinsics [V, 3, 3] for the images as stored, cam2ego
+        [V, 4, 4] (camera → ego frame), taken as they are (not validated: training reads them the same way)."""
+        return cls(tuple(cameras), np.asarray(intrinsics, dtype=np.float64), np.asarray(cam2ego, dtype=np.float64),
+                   (None,) * len(cameras))
 
-        ``reductions`` (one n per camera): the images of ``sizes`` (as stored) were decoded at 1/n
-        (:func:`occflownet.contract.images.decode_reduction`); the intrinsics are then scaled by s = 1/n exactly
-        (``f' = f/n``, ``c' = (c + 0.5)/n − 0.5``), in float64 before the one cast to float32."""
+    def arrays_for(self, sizes: Sequence[tuple[int, int]], source: str = "the calibration",
+                   remedy: str = "a calibration", reductions: Sequence[int] | None = None,
+                   size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(intrinsics float32 [V, 3, 3] for the images as a model is fed them, cam2ego float32 [V, 4, 4]): the one
+        place the pixel-centre rule is applied. Per camera, in float64 before the one cast to float32:
+
+        1. from its calibrated size to its image's size (w, h) in ``sizes`` (as stored), where they differ;
+           CalibrationError naming the camera when the aspect ratio differs (``source`` names the calibration,
+           ``remedy`` what the user should send instead);
+        2. ``reductions`` (one n per camera): the image was decoded at 1/n
+           (:func:`occflownet.contract.images.decode_reduction`), so s = 1/n exactly (``f' = f/n``,
+           ``c' = (c + 0.5)/n − 0.5``);
+        3. ``size`` (w, h): the decoded image (⌈w/n⌉ × ⌈h/n⌉) was then resized to ``size`` by its user (the
+           server's common size), s = size / decoded size; no aspect check, the resize is known exactly."""
         if len(sizes) != len(self.cameras):
             raise ValueError(f"need {len(self.cameras)} image sizes, got {len(sizes)}")
-        K = [rescale_intrinsics(k, size, (int(w), int(h)), camera=name, source=source, remedy=remedy)
-             for name, k, size, (w, h) in zip(self.cameras, self.intrinsics, self.image_sizes, sizes)]
-        if reductions is not None:
-            K = [k if n == 1 else scale_intrinsics(k, 1.0 / n, 1.0 / n) for k, n in zip(K, reductions)]
+        reductions = [1] * len(sizes) if reductions is None else list(reductions)
+        K = []
+        for name, k, calibrated, (w, h), n in zip(self.cameras, self.intrinsics, self.image_sizes, sizes, reductions):
+            k = rescale_intrinsics(k, calibrated, (int(w), int(h)), camera=name, source=source, remedy=remedy)
+            if n != 1:
+                k = scale_intrinsics(k, 1.0 / n, 1.0 / n)
+            decoded = reduced_size(int(w), int(h), n)
+            if size is not None and tuple(size) != decoded:
+                k = scale_intrinsics(k, size[0] / decoded[0], size[1] / decoded[1])
+            K.append(k)
         return np.stack(K).astype(np.float32), self.cam2ego.astype(np.float32)
 
 

@@ -1,17 +1,15 @@
-"""The onnxruntime session of a contract-v1 model: made and checked in one place, run with the contract's feeds.
+"""The onnxruntime session of a contract-v1 model: made and checked in one place.
 
-onnxruntime is imported when a session is made, never torch. Used by predict, eval ``--model``, export (parity and
-variants) and the server.
+onnxruntime is imported when a session is made, never torch. Run only by :class:`occflownet.runtime.OnnxPredictor`
+(predict, eval ``--model``, export parity and variants, the server, the benchmarks).
 """
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
-import numpy as np
-
 from occflownet.contract.metadata import ModelMetadata, parse_metadata
-from occflownet.contract.tensors import OUTPUT_NAMES, check_signature, make_feeds, session_signature
+from occflownet.contract.tensors import check_signature, session_signature
 
 
 def check_session(session, source: str) -> ModelMetadata:
@@ -48,13 +46,3 @@ def create_session(model_path: str | Path, threads: int | None = None, spinning:
         check_session(session, str(model_path))
     return session
 
-
-def run_session(session, images: np.ndarray, intrinsics: np.ndarray, cam2ego: np.ndarray,
-                outputs: tuple[str, ...] = OUTPUT_NAMES):
-    """Run the v1 graph. Accepts one sample ([6, ...]) or a batch ([B, 6, ...]); returns the requested outputs
-    (default occupancy uint8 [(B,) 200, 200, 16], density float32 [(B,) 200, 200, 16]) at the same rank."""
-    single = images.ndim == 4
-    if single:
-        images, intrinsics, cam2ego = images[None], intrinsics[None], cam2ego[None]
-    results = session.run(list(outputs), make_feeds(images, intrinsics, cam2ego))
-    return tuple(r[0] for r in results) if single else tuple(results)

@@ -1,6 +1,7 @@
-"""Contract v1's graph interface: the tensors (names, dtypes, shapes), the signature check and the input feeds.
+"""Contract v1's graph interface: the tensors (names, dtypes, shapes) and the signature check.
 
-Numpy only. The table of tensors and their frames is in :mod:`occflownet.contract`.
+Numpy only. The table of tensors and their frames is in :mod:`occflownet.contract`; the inputs a model is fed are
+:class:`occflownet.runtime.ModelInputs` (built, checked against :data:`INPUTS` and run there only).
 """
 from __future__ import annotations
 
@@ -85,18 +86,3 @@ def session_signature(session) -> tuple[list, list]:
     return ([(a.name, a.type, a.shape) for a in session.get_inputs()],
             [(a.name, a.type, a.shape) for a in session.get_outputs()])
 
-
-def make_feeds(images: np.ndarray, intrinsics: np.ndarray, cam2ego: np.ndarray) -> dict[str, np.ndarray]:
-    """The contract's input dict from a batch: images uint8 [B, V, H, W, 3], intrinsics [B, V, 3, 3], cam2ego
-    [B, V, 4, 4] (cast to the contract's dtypes, C-contiguous). ValueError naming the tensor on a wrong shape."""
-    arrays = (images, intrinsics, cam2ego)
-    feeds = {}
-    for spec, value in zip(INPUTS, arrays):
-        a = np.ascontiguousarray(value, dtype=spec.dtype)
-        if a.ndim != spec.rank or any(w is not None and g != w for g, w in zip(a.shape, spec.shape)):
-            raise ValueError(f"{spec.name}: shape {list(a.shape)} does not fit contract {CONTRACT_VERSION} "
-                             f"{list(spec.shape)}")
-        feeds[spec.name] = a
-    if len({a.shape[0] for a in feeds.values()}) != 1:
-        raise ValueError(f"batch sizes differ: {[list(a.shape) for a in feeds.values()]}")
-    return feeds

@@ -7,16 +7,17 @@ Two steps, so that bad data is reported before a model is loaded or anything run
    has its Occ3D labels (error naming the samples otherwise);
 2. :func:`evaluate` runs a *predictor* over them and accumulates the metrics.
 
-A predictor is any callable on a batch of B samples::
+A predictor is an :class:`occflownet.runtime.Predictor` — ``OnnxPredictor.open(path)`` (onnxruntime, this path never
+imports torch) or ``TorchPredictor(model_from_source(checkpoint))`` (a checkpoint's EMA weights in torch) — or any
+callable on a batch of B samples::
 
-    predict(images uint8 [B, 6, H, W, 3] RGB in CAMERAS order,
-            intrinsics float32 [B, 6, 3, 3] (for that H × W),
-            cam2ego float32 [B, 6, 4, 4] camera (OpenCV) → current ego frame)
+    predict(ModelInputs: images uint8 [B, 6, H, W, 3] RGB in CAMERAS order,
+                         intrinsics float32 [B, 6, 3, 3] (for that H × W),
+                         cam2ego float32 [B, 6, 4, 4] camera (OpenCV) → current ego frame)
       → (occupancy uint8 [B, 200, 200, 16] [x, y, z], 17 = free, density float32 [B, 200, 200, 16])
 
-i.e. the ONNX contract v1. :func:`checkpoint_predictor` runs a checkpoint's (EMA) weights in torch,
-:func:`onnx_predictor` an exported graph in onnxruntime (this path never imports torch). Inputs are built as in
-training (``train/dataset.py``): images as stored, each camera's intrinsics, ``cam2ego`` =
+i.e. the ONNX contract v1. Inputs are built as in training (``train/dataset.py``) by the one feeds function
+(:func:`occflownet.runtime.frame_inputs`): images as stored, each camera's intrinsics, ``cam2ego`` =
 ``SampleRecord.cam2current_ego()`` (through each camera's own ego pose). Predictions and labels live in the current
 ego frame of the keyframe (the ego pose at the LiDAR timestamp).
 """
@@ -24,50 +25,20 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from occflownet.contract import Calibration
 from occflownet.occ3d import GRID
 from occflownet.data.index import SampleIndex, load_index
 from occflownet.data.loaders import load_occupancy, load_sample_images
 from occflownet.data.tables import DatasetError
 from occflownet.eval import OccupancyMetric, RayIoUMetric, scene_ray_origins
 from occflownet.eval.fog import FogMetric, crossed_voxels
-
-Predictor = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple]
-
-
-# ----------------------------------------------------------------------------------------------- predictors
-def checkpoint_predictor(path) -> Predictor:
-    """The weights of an occflownet checkpoint (training stores the EMA weights there), run in torch on the CPU.
-    Raises CheckpointError (a ValueError) naming the file if it is missing or unusable."""
-    import torch
-
-    from occflownet.model.checkpoint import load_checkpoint
-
-    model, _, _ = load_checkpoint(path)
-    model.eval()
-
-    def predict(images, intrinsics, cam2ego):
-        with torch.inference_mode():
-            occ, dens = model.inference(torch.from_numpy(images), torch.from_numpy(intrinsics),
-                                        torch.from_numpy(cam2ego))
-        return occ.numpy(), dens.numpy()
-
-    return predict
-
-
-def onnx_predictor(path, threads: int | None = None) -> Predictor:
-    """An exported model run by onnxruntime (``threads`` intra-op threads, default all cores); no torch import.
-    FileNotFoundError / ValueError naming the file if it is missing or cannot be loaded."""
-    from occflownet.contract import create_session, run_session
-
-    session = create_session(path, threads)
-    return lambda images, intrinsics, cam2ego: run_session(session, images, intrinsics, cam2ego)
+from occflownet.runtime import ModelInputs, Predictor, frame_inputs
 
 
 # ----------------------------------------------------------------------------------------------- samples
@@ -130,27 +101,23 @@ class _Loaded:
 
     positions: list
     tokens: list
-    images: np.ndarray        # uint8 [B, 6, H, W, 3]
-    intrinsics: np.ndarray    # float32 [B, 6, 3, 3]
-    cam2ego: np.ndarray       # float32 [B, 6, 4, 4]
+    inputs: ModelInputs       # B frames: images uint8 [B, 6, H, W, 3], intrinsics [B, 6, 3, 3], cam2ego [B, 6, 4, 4]
     labels: list              # B Occupancy
 
 
 def _load(samples: EvalSamples, positions) -> list[_Loaded]:
     """Load a batch; split it where the image size changes (a batch needs one H × W)."""
     records = [samples.index[int(p)] for p in positions]
-    images = [load_sample_images(samples.dataroot, r) for r in records]
+    frames = [frame_inputs(load_sample_images(samples.dataroot, r),
+                           Calibration.from_arrays(r.intrinsics, r.cam2current_ego())) for r in records]
     labels = [load_occupancy(samples.dataroot, r.occupancy_path) for r in records]
     groups, start = [], 0
     for i in range(1, len(records) + 1):
-        if i == len(records) or images[i].shape != images[start].shape:
+        if i == len(records) or frames[i].images.shape != frames[start].images.shape:
             part = slice(start, i)
-            groups.append(_Loaded(
-                positions=[int(p) for p in positions[part]], tokens=[r.token for r in records[part]],
-                images=np.stack(images[part]),
-                intrinsics=np.stack([r.intrinsics for r in records[part]]).astype(np.float32),
-                cam2ego=np.stack([r.cam2current_ego() for r in records[part]]).astype(np.float32),
-                labels=labels[part]))
+            groups.append(_Loaded(positions=[int(p) for p in positions[part]],
+                                  tokens=[r.token for r in records[part]],
+                                  inputs=ModelInputs.stack(frames[part]), labels=labels[part]))
             start = i
     return groups
 
@@ -267,7 +234,7 @@ def predictions(samples: EvalSamples, predict: Predictor, batch_size: int = 1, t
                 pending = loader.submit(_load, samples, batches[b + 1])
             for batch in groups:
                 t0 = time.perf_counter()
-                occupancy, density = _checked_outputs(predict(batch.images, batch.intrinsics, batch.cam2ego), batch)
+                occupancy, density = _checked_outputs(predict(batch.inputs), batch)
                 timing["predict"] += time.perf_counter() - t0
                 yield from zip(batch.positions, batch.tokens, occupancy, density, batch.labels)
 

@@ -11,8 +11,8 @@ import torch
 
 from occflownet import __version__
 from occflownet.files import atomic_path
-from occflownet.model.presets import ModelConfig
-from occflownet.model.occupancy_model import OccupancyModel
+from occflownet.model.presets import ModelConfig, get_preset
+from occflownet.model.occupancy_model import OccupancyModel, create_model
 
 
 class CheckpointError(ValueError):
@@ -65,3 +65,16 @@ def load_checkpoint(path, expect_preset: str | None = None, map_location="cpu"):
         raise CheckpointError(f"{path}: weights do not match preset {cfg.preset!r}: {exc}") from exc
     model.to(map_location).eval()
     return model, cfg, payload.get("extra") or {}
+
+
+def model_from_source(checkpoint: str | Path | None = None, preset: str | None = None, seed: int | None = None
+                      ) -> OccupancyModel:
+    """An ``OccupancyModel`` in eval mode from a checkpoint (its weights: training stores the EMA weights there), or
+    a randomly initialised preset (seeded: same seed → same weights). Run it with
+    ``occflownet.runtime.TorchPredictor``. CheckpointError (a ValueError) naming the file."""
+    if checkpoint is not None:
+        model, _, _ = load_checkpoint(checkpoint)
+        return model.eval()
+    if preset is None:
+        raise ValueError("need a checkpoint or a preset")
+    return create_model(get_preset(preset), seed=0 if seed is None else seed).eval()

@@ -2,9 +2,10 @@
 
 Request pipeline (CPU work never on the event loop), each step refusing what it can before the next:
 Accept → 406 | not warmed up → 503 | queue full → 503 + Retry-After | stream multipart parts (422/413/415/400) |
-read image headers, check pixel limits (413/400) | calibration (400) | wait for a CPU slot | decode the six images
-in threads straight into the [6, H, W, 3] tensor, resizing any not at the common size (400) | run ORT on the
-inference thread | encode in a thread | release the slot.
+read image headers, check pixel limits (413/400) | the frame's calibration for the tensor size (400) | wait for a CPU
+slot | decode the six images in threads straight into the [6, H, W, 3] tensor, resizing any not at the common size
+(400) | run ORT on the inference thread | encode in a thread | release the slot. The model's inputs come from the one
+feeds function (``ModelRuntime.frame`` → ``FrameCalibration.inputs``, :mod:`occflownet.runtime`), as the warm-up's.
 """
 from __future__ import annotations
 
@@ -16,11 +17,10 @@ from fastapi import APIRouter, Request
 from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response
 
-from occflownet.contract import CalibrationError, ModelMetadata
+from occflownet.contract import CalibrationError
 from occflownet.occ3d import CAMERAS
-from occflownet.serve.calibration import request_calibration
-from occflownet.serve.decode import (ImageError, check_header, common_size, decode_image, decode_reduction,
-                                    decoded_size, intrinsics_for_size)
+from occflownet.runtime import FrameCalibration
+from occflownet.serve.decode import ImageError, check_header, decode_image, decode_reduction
 from occflownet.serve.dependencies import GateDep, MediaTypeDep, MetricsDep, ReadyRuntimeDep, SettingsDep
 from occflownet.serve.encode import encode
 from occflownet.serve.errors import ApiError
@@ -93,52 +93,50 @@ async def occupancy(request: Request, media_type: MediaTypeDep, runtime: ReadyRu
     try:
         md = runtime.metadata
         parts = await read_parts(request, occupancy_parts(md.cameras, settings.max_body_bytes))
-        sizes, reductions, K, T = _checked_inputs(parts, md, settings.max_image_pixels)
-        body, headers = await _compute(gate, runtime, metrics, parts, (sizes, reductions), K, T,
-                                       settings.max_image_pixels, media_type)
+        reductions, frame = _checked_inputs(parts, runtime, settings.max_image_pixels)
+        body, headers = await _compute(gate, runtime, metrics, parts, reductions, frame, settings.max_image_pixels,
+                                       media_type)
         return Response(body, media_type=media_type, headers=headers)
     finally:
         gate.leave()
 
 
-def _checked_inputs(parts: dict[str, Part], md: ModelMetadata, max_pixels: int
-                   ) -> tuple[list[tuple[int, int]], list[int], np.ndarray, np.ndarray]:
+def _checked_inputs(parts: dict[str, Part], runtime: ModelRuntime, max_pixels: int
+                   ) -> tuple[list[int], FrameCalibration]:
     """Everything checkable before a slot is awaited, nothing decoded: all parts present, each image's header
-    (JPEG/PNG, complete, ≤ ``max_pixels``), the calibration → (decoded image sizes (w, h) in camera order, the
-    scale 1/n each is decoded at (JPEGs at reduced scale, docs/contracts.md), intrinsics float32 [6, 3, 3] for
-    the decoded sizes, cam2ego float32 [6, 4, 4] camera → ego). Raises ApiError (422, 413, 400)."""
+    (JPEG/PNG, complete, ≤ ``max_pixels``), the calibration → (the scale 1/n each image is decoded at (JPEGs at
+    reduced scale, docs/contracts.md), the frame's calibration: the tensor size (w, h), intrinsics float32
+    [6, 3, 3] for it, cam2ego float32 [6, 4, 4] camera → ego). Raises ApiError (422, 413, 400)."""
+    md = runtime.metadata
     missing = [cam for cam in md.cameras if cam not in parts]
     if missing:
         raise ApiError(422, "missing_part", f"missing image part(s) {', '.join(missing)}; the request needs one "
                        f"part per camera: {', '.join(md.cameras)} (and optionally 'calibration')")
     try:
         headers = [check_header(cam, parts[cam].data, max_pixels) for cam in md.cameras]
-        sizes = [(h.width, h.height) for h in headers]
         reductions = [decode_reduction(h, md.input_size) for h in headers]
         calib = parts["calibration"].data if "calibration" in parts else None
-        K, T = request_calibration(calib, md, sizes, reductions)
+        frame = runtime.frame(calib, [(h.width, h.height) for h in headers], reductions)
     except ImageError as exc:
         raise ApiError(exc.status, "bad_image" if exc.status == 400 else "image_too_large", str(exc)) from None
     except CalibrationError as exc:
         raise ApiError(400, "bad_calibration", str(exc)) from None
-    return [decoded_size(h, n) for h, n in zip(headers, reductions)], reductions, K, T
+    return reductions, frame
 
 
 async def _compute(gate: InferenceGate, runtime: ModelRuntime, metrics: Metrics, parts: dict[str, Part],
-                  decoded: tuple[list[tuple[int, int]], list[int]], K: np.ndarray, T: np.ndarray, max_pixels: int,
-                  media_type: str) -> tuple[bytes, dict[str, str]]:
-    """In one CPU slot: decode the images (in threads) into uint8 [6, H, W, 3] RGB at the common size (or the
-    graph's fixed size), intrinsics K float32 [6, 3, 3] (for the decoded sizes of ``decoded`` = (sizes,
-    reductions), see :func:`_checked_inputs`) rescaled to it, inference with cam2ego
-    T float32 [6, 4, 4] → occupancy uint8 [200, 200, 16], encoded as ``media_type`` → (body, headers with
-    Server-Timing). ``parts`` is emptied once decoded (the uploads are not kept during inference)."""
+                  reductions: list[int], frame: FrameCalibration, max_pixels: int, media_type: str
+                  ) -> tuple[bytes, dict[str, str]]:
+    """In one CPU slot: decode the images (in threads, each at 1/``reductions[i]``) into uint8 [6, h, w, 3] RGB at
+    ``frame.size`` (the common size or the graph's fixed size, see :meth:`ModelRuntime.frame`), inference on
+    ``frame.inputs(images)`` (intrinsics already for that size, cam2ego) → occupancy uint8 [200, 200, 16], encoded
+    as ``media_type`` → (body, headers with Server-Timing). ``parts`` is emptied once decoded (the uploads are not
+    kept during inference)."""
     cameras = runtime.metadata.cameras
     t_queue = time.perf_counter()
     async with gate.slot() as slot:
         t_decode = time.perf_counter()
-        sizes, reductions = decoded
-        w, h = runtime.fixed_image_size or common_size(sizes)
-        images = np.empty((len(cameras), h, w, 3), np.uint8)
+        images = np.empty(frame.image_shape, np.uint8)
         try:
             await asyncio.gather(*(run_in_threadpool(decode_image, cam, parts[cam].data, max_pixels, images[i],
                                                      reductions[i])
@@ -146,9 +144,9 @@ async def _compute(gate: InferenceGate, runtime: ModelRuntime, metrics: Metrics,
         except ImageError as exc:
             raise ApiError(exc.status, "bad_image", str(exc)) from None
         parts.clear()
-        K = intrinsics_for_size(K, sizes, (w, h))
+        inputs = frame.inputs(images)
         t_infer = time.perf_counter()
-        occupancy = await gate.infer(slot, runtime.infer, images, K, T)
+        occupancy = await gate.infer(slot, runtime.infer, inputs)
         t_encode = time.perf_counter()
         timings = {"queue": round((t_decode - t_queue) * 1e3, 3), "decode": round((t_infer - t_decode) * 1e3, 3),
                    "inference": round((t_encode - t_infer) * 1e3, 3)}
