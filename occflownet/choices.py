@@ -10,6 +10,7 @@ SUPERVISION_MODES: tuple[str, ...] = ("2d", "3d", "2d+3d")  # LiDAR rendering, O
 FLOW_MOVERS: tuple[str, ...] = ("idw", "nearest")           # occupancy-flow movers (render/occupancy_flow.py)
 SIGMA_READINGS: tuple[str, ...] = ("density", "opacity")    # how rendering reads σ (render/volume_render.py)
 RENDER_SEMANTICS: tuple[str, ...] = ("mixture", "normalized")  # CE on the rendered mixture or on it ÷ weight sum
+LR_SCHEDULES: tuple[str, ...] = ("constant", "cosine")      # the learning rate after the warm-up (train/schedule.py)
 
 
 def supervision_parts(mode: str) -> frozenset[str]:

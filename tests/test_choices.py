@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from occflownet import choices
-from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, PRESET_NAMES, RENDER_SEMANTICS, SIGMA_READINGS,
-                                SUPERVISION_MODES, supervision_parts)
+from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, LR_SCHEDULES, PRESET_NAMES, RENDER_SEMANTICS,
+                                SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
 from occflownet.cli import build_parser
 from occflownet.commands.train import config_from_args
 from occflownet.options import config_argv
@@ -22,7 +22,8 @@ from occflownet.train.recipe import PRESET_RECIPES, TrainConfig
 REPO = Path(__file__).resolve().parents[1]
 SETS = {"PRESET_NAMES": ("tiny", "base", "paper"), "HEAD_INITS": ("prior", "official"),
         "SUPERVISION_MODES": ("2d", "3d", "2d+3d"), "FLOW_MOVERS": ("idw", "nearest"),
-        "SIGMA_READINGS": ("density", "opacity"), "RENDER_SEMANTICS": ("mixture", "normalized")}
+        "SIGMA_READINGS": ("density", "opacity"), "RENDER_SEMANTICS": ("mixture", "normalized"),
+        "LR_SCHEDULES": ("constant", "cosine")}
 
 
 def test_the_sets_of_choices():
@@ -54,7 +55,8 @@ def _choices_of(verb: str) -> dict[str, tuple]:
 def test_the_command_lines_offer_the_same_choices():
     assert _choices_of("train") == {"preset": PRESET_NAMES, "supervision": SUPERVISION_MODES,
                                     "flow_mover": FLOW_MOVERS, "head_init": ("", *HEAD_INITS),
-                                    "sigma_is": SIGMA_READINGS, "render_semantics": RENDER_SEMANTICS}
+                                    "sigma_is": SIGMA_READINGS, "render_semantics": RENDER_SEMANTICS,
+                                    "lr_schedule": LR_SCHEDULES}
     assert _choices_of("quickstart") == {"supervision": SUPERVISION_MODES}
     for verb in ("export", "predict"):
         assert _choices_of(verb)["preset"] == PRESET_NAMES

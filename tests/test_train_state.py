@@ -79,3 +79,23 @@ def test_a_model_only_checkpoint_cannot_be_resumed(tmp_path):
     path = save_checkpoint(tmp_path / "weights.pt", state.model, state.model_cfg)
     with pytest.raises(TrainingError, match=r"weights\.pt: not a training checkpoint"):
         TrainingState.load(path)
+
+
+def test_lr_schedules_warm_up_then_hold_or_decay_to_zero_at_the_last_step():
+    from occflownet.train.schedule import lr_factor
+
+    assert [lr_factor(s, 4) for s in range(6)] == [0.25, 0.5, 0.75, 1.0, 1.0, 1.0]           # official: constant
+    cosine = [lr_factor(s, 4, "cosine", 10) for s in range(10)]
+    assert cosine[:4] == [0.25, 0.5, 0.75, 1.0]                                               # the same warm-up
+    assert cosine[6] == pytest.approx(0.5) and cosine[-1] == pytest.approx(0.0, abs=1e-12)    # half-way, the end
+    assert all(a > b for a, b in zip(cosine[3:], cosine[4:]))                                 # decays
+    with pytest.raises(ValueError, match="lr schedule must be one of"):
+        lr_factor(0, 4, "step")
+    cfg = TrainConfig(preset="tiny", lr=1e-3, warmup_steps=4, max_steps=10, lr_schedule="cosine")
+    state = TrainingState.create(cfg, get_preset("tiny"), "cpu")
+    rates = []
+    for _ in range(10):
+        rates.append(state.optimizer.param_groups[0]["lr"])
+        state.optimizer.step()
+        state.scheduler.step()
+    assert rates == pytest.approx([1e-3 * f for f in cosine])

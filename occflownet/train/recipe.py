@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, PRESET_NAMES, RENDER_SEMANTICS, SIGMA_READINGS,
-                                SUPERVISION_MODES, supervision_parts)
+from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, LR_SCHEDULES, PRESET_NAMES, RENDER_SEMANTICS,
+                                SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
 from occflownet.options import option
 
 # The per-preset recipe: the values a TrainConfig field left at None takes. The official values (AdamW 1e-4,
@@ -80,6 +80,9 @@ class TrainConfig:
     batch_size: int = option(1, "samples per process per step")
     rays_per_step: int | None = option(None, "rays per sample per step (default: the preset's; official 32768)")
     lr: float | None = option(None, "AdamW learning rate (default: the preset's)")
+    lr_schedule: str = option("constant", "after the warm-up: constant (official) or a cosine decay to 0 at "
+                                          "--max-steps (a resumed run decays over its new --max-steps)",
+                              choices=LR_SCHEDULES)
     weight_decay: float = option(1e-2, "AdamW weight decay")
     grad_clip: float = option(5.0, "gradient norm clip")
     warmup_steps: int | None = option(None, "linear warm-up steps (default: the preset's)")
@@ -102,6 +105,8 @@ class TrainConfig:
         supervision_parts(self.supervision)  # ValueError naming the modes
         if self.horizon < 0:
             raise ValueError("horizon must be >= 0")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
         if self.flow_mover not in FLOW_MOVERS:
             raise ValueError(f"flow_mover must be one of {FLOW_MOVERS}, got {self.flow_mover!r}")
         if self.head_init not in HEAD_INIT_CHOICES:

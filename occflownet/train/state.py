@@ -56,14 +56,15 @@ class TrainingState:
     @classmethod
     def create(cls, cfg: TrainConfig, model_cfg: ModelConfig, device) -> "TrainingState":
         """A fresh run: weights from ``cfg.seed`` (this seeds torch's RNG), AdamW with weight decay on weights
-        but not on norms/biases (parameters with ndim <= 1), linear warm-up, EMA with ``cfg.ema_decay``."""
+        but not on norms/biases (parameters with ndim <= 1), linear warm-up then ``cfg.lr_schedule`` over
+        ``cfg.max_steps``, EMA with ``cfg.ema_decay``."""
         model = create_model(model_cfg, seed=cfg.seed).to(device)
         params = list(model.parameters())
         optimizer = torch.optim.AdamW([{"params": [p for p in params if p.ndim > 1], "weight_decay": cfg.weight_decay},
                                        {"params": [p for p in params if p.ndim <= 1], "weight_decay": 0.0}],
                                       lr=cfg.lr)
         return cls(cfg, model_cfg, model, EMA(model, cfg.ema_decay), optimizer,
-                   warmup_schedule(optimizer, cfg.warmup_steps))
+                   warmup_schedule(optimizer, cfg.warmup_steps, cfg.lr_schedule, cfg.max_steps))
 
     def save(self, path) -> Path:
         """Write the state to ``path`` atomically (the layout in the module docstring)."""
