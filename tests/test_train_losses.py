@@ -291,3 +291,24 @@ def test_the_loss_computer_renders_the_rays_of_its_terms(sigma):
         assert terms["free_space"] == pytest.approx(0.05 * (40.0 - 0.05), rel=3e-3)
         stretches = [0.05 * (0.8 * depth - 0.6 - 0.05) for depth in (10.0, 20.0)]     # to 0.8 · depth - 0.6 m
         assert terms["free_before"] == pytest.approx(np.mean(stretches), rel=3e-3)
+
+
+def test_density_logit_clip_renders_at_the_edge_and_keeps_the_gradient():
+    """--density-logit-clip M: a voxel whose logit ran to -20 renders as σ = sigmoid(-M) and its logit still gets
+    the gradient sigmoid'(-M) (straight through the clamp), where sigmoid'(-20) ≈ 2e-9 would leave it stuck."""
+    from occflownet.train.step import straight_clamp
+
+    z = torch.tensor([-20.0, 0.5, 9.0], requires_grad=True)
+    sigma = torch.sigmoid(straight_clamp(z, 6.0))
+    assert sigma.detach().tolist() == pytest.approx([float(torch.sigmoid(torch.tensor(-6.0))), float(torch.sigmoid(
+        torch.tensor(0.5))), float(torch.sigmoid(torch.tensor(6.0)))])
+    sigma.sum().backward()
+    expected = [torch.sigmoid(torch.tensor(v)) * (1 - torch.sigmoid(torch.tensor(v))) for v in (-6.0, 0.5, 6.0)]
+    assert z.grad.tolist() == pytest.approx([float(e) for e in expected])
+    losses = _computer(density_logit_clip=6.0)
+    logit = torch.tensor([-20.0, 0.0]).view(1, 2, 1, 1)
+    outputs = {"density": torch.sigmoid(logit), "density_logit": logit}
+    assert torch.allclose(losses.render_density(outputs["density"], outputs).flatten(),
+                          torch.sigmoid(torch.tensor([-6.0, 0.0])))
+    official = _computer()
+    assert official.render_density(outputs["density"], outputs) is outputs["density"]

@@ -77,7 +77,8 @@ class OccupancyModel(nn.Module):
     def forward(self, images: torch.Tensor, intrinsics: torch.Tensor, cam2ego: torch.Tensor,
                 density_at: torch.Tensor | None = None, logits_at: torch.Tensor | None = None) -> dict:
         """Training/analysis outputs:
-        density float [B, 200, 200, 16] (σ ∈ [0, 1]); logits float [B, 200, 200, 16, 17];
+        density float [B, 200, 200, 16] (σ ∈ [0, 1]) and density_logit (its logit: σ = sigmoid(density_logit));
+        logits float [B, 200, 200, 16, 17];
         depth_prob float [B, 6, D, h, w] (softmax over D, z-depth bins ``cfg.depth_bin_centers()``);
         feature_intrinsics float [B, 6, 3, 3] (camera frame → feature-map pixel coordinates);
         in eval mode also occupancy uint8 [B, 200, 200, 16] (fused with τ = cfg.threshold; a training step has no
@@ -91,12 +92,13 @@ class OccupancyModel(nn.Module):
         s = self.cfg.decoder_stride
         to_block = lambda rows: None if rows is None else block_rows(rows, GRID.shape, s)  # noqa: E731
         sigma_logits, semantic_logits = self.decoder(trunk, fine_points, to_block(density_at), to_block(logits_at))
-        density = torch.sigmoid(sigma_logits) if density_at is not None else unblock(torch.sigmoid(sigma_logits), s)
+        density_logit = sigma_logits if density_at is not None else unblock(sigma_logits, s)
         logits = semantic_logits if logits_at is not None else unblock(semantic_logits, s)
-        out = {"density": density, "logits": logits, "depth_prob": depth_prob, "feature_intrinsics": feature_k}
+        out = {"density": torch.sigmoid(density_logit), "density_logit": density_logit, "logits": logits,
+               "depth_prob": depth_prob, "feature_intrinsics": feature_k}
         if not self.training and density_at is None and logits_at is None:
             with torch.no_grad():
-                out["occupancy"] = fuse_occupancy(density, logits, self.cfg.threshold)
+                out["occupancy"] = fuse_occupancy(out["density"], logits, self.cfg.threshold)
         return out
 
     def inference(self, images: torch.Tensor, intrinsics: torch.Tensor, cam2ego: torch.Tensor):

@@ -57,6 +57,9 @@ class TrainConfig:
     render_semantics: str = option("mixture", "CE on the rendered logit mixture (official) or on it divided by the "
                                               "ray's weight sum", choices=RENDER_SEMANTICS)
     free_prior_weight: float = option(0.0, "weight of the mean -log(1 - sigma) over all voxels (0: off, official)")
+    density_logit_clip: float = option(0.0, "rendering reads sigma = sigmoid(clamp(logit, -M, M)) with the "
+                                             "gradient passed straight through the clamp, so that a voxel whose "
+                                             "logit ran far out still learns (0: off, official; beyond the paper)")
     voxel_mask: bool = option(False, "3D voxel losses only inside mask_camera (off: every voxel, as the official "
                                      "code)")
     head_init: str = option("", "σ/semantic head init: prior (σ ≈ 0.1 at the start) or official (Xavier, zero "
@@ -117,8 +120,8 @@ class TrainConfig:
         if self.sigma_is not in SIGMA_READINGS or self.render_semantics not in RENDER_SEMANTICS:
             raise ValueError(f"sigma_is must be one of {SIGMA_READINGS} and render_semantics one of "
                              f"{RENDER_SEMANTICS}, got {self.sigma_is!r}, {self.render_semantics!r}")
-        if self.render_depth_weight < 0 or self.free_prior_weight < 0:
-            raise ValueError("render_depth_weight and free_prior_weight must be >= 0")
+        if self.render_depth_weight < 0 or self.free_prior_weight < 0 or self.density_logit_clip < 0:
+            raise ValueError("render_depth_weight, free_prior_weight and density_logit_clip must be >= 0")
         if self.free_rays_per_step < 1 or self.free_space_weight < 0:
             raise ValueError("free_rays_per_step must be >= 1 and free_space_weight >= 0")
 
