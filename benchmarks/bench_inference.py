@@ -15,9 +15,10 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
 - ``baseline`` (``--baseline FILE``, an ONNX file of the same preset and weights, or ``--baseline-commit REV``:
   that commit is checked out in a ``git worktree`` and its own exporter writes the same weights, saved as a
   checkpoint by this script) fed whole images, as its code decoded them;
-- with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations) and
-  fp16 graphs, with their agreement with fp32 (the first row); ``--openvino`` adds today's fp32 and int8 graphs
-  run by OpenVINO CPU (f32 precision hint: this CPU has no bf16, ``OPTIMIZATION_CAPABILITIES`` = FP32, INT8).
+- with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations; 7-bit
+  weights, and with ``int8-full`` 8-bit weights for CPUs with VNNI/AMX) and fp16 graphs, with their agreement with
+  fp32 (the first row); ``--openvino`` adds today's fp32 and int8 graphs run by OpenVINO CPU (f32 precision hint),
+  ``--openvino-bf16`` today's fp32 graph with OpenVINO's bf16 hint (on CPUs with AVX512-BF16 or AMX).
 
 ``--profile`` prints onnxruntime's own profile of each graph (kernel time per op class, share of the run, and the
 costliest nodes), so a loss shows where it comes from. A 2048³ fp32 matmul (torch) is measured at the start and
@@ -186,15 +187,20 @@ class OpenVinoSession:
     """OpenVINO CPU (``INFERENCE_PRECISION_HINT`` f32, as tests/test_runtimes.py) behind onnxruntime's ``run``, so
     that an ``OnnxPredictor`` runs it."""
 
-    def __init__(self, path: Path, threads: int):
+    def __init__(self, path: Path, threads: int, precision: str = "f32"):
         import openvino as ov
 
-        self.compiled = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_PRECISION_HINT": "f32",
+        self.compiled = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_PRECISION_HINT": precision,
                                                                   "INFERENCE_NUM_THREADS": threads})
 
     def run(self, names, feeds):
         result = self.compiled(feeds)
         return [result[self.compiled.output(n)] for n in names]
+
+
+def _openvino(label: str, path: Path, threads: int) -> OpenVinoSession:
+    """The OpenVINO session of a graph row: f32 precision, or bf16 for the "[OpenVINO bf16]" row."""
+    return OpenVinoSession(path, threads, "bf16" if label.endswith("bf16]") else "f32")
 
 
 def interleaved(graphs: list[tuple[str, object, tuple]], runs: int) -> tuple[dict, dict]:
@@ -238,11 +244,13 @@ def build_graphs(name: str, args, model, whole, reduced, workdir: Path) -> list[
             export_baseline_commit(args.baseline_commit, ckpt, base, workdir)
         graphs.append((f"baseline {args.baseline_commit or base.name}, whole images", base, whole))
     wanted = [] if args.variants is None else (args.variants or ["int8", "fp16"])
-    if "int8" in wanted:
-        from occflownet.export.variants import write_int8
+    for variant, int8_range in (("int8", "reduced"), ("int8-full", "full")):
+        if variant in wanted:
+            from occflownet.export.variants import write_int8
 
-        int8 = write_int8(path, workdir / f"{name}.int8.onnx", model.cfg, frame=FRAME if FRAME.is_dir() else None)
-        graphs.append(("today int8", int8, reduced))
+            int8 = write_int8(path, workdir / f"{name}.{variant}.onnx", model.cfg,
+                              frame=FRAME if FRAME.is_dir() else None, int8_range=int8_range)
+            graphs.append((f"today {variant}", int8, reduced))
     if "fp16" in wanted:
         from occflownet.export.variants import write_fp16
 
@@ -262,8 +270,10 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
           flush=True)
     if args.openvino:
         graphs += [(f"{label} [OpenVINO]", path, inputs) for label, path, inputs in graphs
-                   if label in ("today", "today int8")]
-    sessions = [(label, OnnxPredictor(OpenVinoSession(path, threads) if label.endswith("[OpenVINO]")
+                   if label in ("today", "today int8", "today int8-full")]
+        if args.openvino_bf16:
+            graphs += [("today [OpenVINO bf16]", graphs[0][1], graphs[0][2])]
+    sessions = [(label, OnnxPredictor(_openvino(label, path, threads) if "[OpenVINO" in label
                                       else create_session(path, threads, spinning=SPINNING)), inputs)
                 for label, path, inputs in graphs]
     times, totals = interleaved(sessions, args.runs)
@@ -282,7 +292,7 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
               f"voxels equal, density max |d| {a['density_max_abs_diff']:.1e}", flush=True)
     if args.profile:
         for label, path, inputs in graphs:
-            if label.endswith("[OpenVINO]"):
+            if "[OpenVINO" in label:
                 continue
             print_profile(label, *profile(path, inputs[0], args.profile_runs, threads))
     if args.torch:
@@ -302,12 +312,15 @@ def main(argv=None) -> int:
     p.add_argument("--checkpoint", help="time this trained checkpoint (of the one preset given) instead")
     p.add_argument("--baseline", help="an ONNX file of the same preset and weights to time beside today's")
     p.add_argument("--baseline-commit", help="export the same weights with this commit's code (git worktree)")
-    p.add_argument("--variants", nargs="*", choices=["int8", "fp16"], default=None,
-                   help="also time today's reduced-precision graphs (no value: both)")
+    p.add_argument("--variants", nargs="*", choices=["int8", "int8-full", "fp16"], default=None,
+                   help="also time today's reduced-precision graphs (no value: int8 and fp16; int8-full: 8-bit "
+                        "weights, for CPUs with VNNI/AMX)")
     p.add_argument("--profile", action="store_true", help="print onnxruntime's per-op profile of each graph")
     p.add_argument("--profile-runs", type=int, default=5)
     p.add_argument("--torch", action="store_true", help="also time torch eager")
     p.add_argument("--openvino", action="store_true", help="also run today's fp32 (and int8) graph on OpenVINO CPU")
+    p.add_argument("--openvino-bf16", action="store_true",
+                   help="with --openvino: also today's fp32 graph with OpenVINO's bf16 precision hint")
     p.add_argument("--keep", help="write the graphs into this folder and keep them (a baseline for later runs)")
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     p.add_argument("--ort-spinning", action="store_true", help="let onnxruntime's idle threads busy-wait")

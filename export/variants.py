@@ -3,7 +3,7 @@
 - fp16: weights and activations in float16 (``onnxruntime.transformers.float16``); inputs/outputs keep their
   contract-v1 types, and the geometry/pooling/threshold ops stay in float32 (their indices must be exact).
 - int8: static QDQ quantisation (``onnxruntime.quantization.quantize_static``) of the convolutions only
-  (:data:`INT8_OP_TYPES`), per-channel int8 weights with 7-bit range (:data:`INT8_REDUCE_RANGE`), uint8
+  (:data:`INT8_OP_TYPES`), per-channel int8 weights with 7-bit range (``int8_range="reduced"``, or 8-bit), uint8
   activations calibrated (MinMax) on real-looking frames (:class:`_CalibrationReader`: the ``frame`` folder as the
   inference paths decode it — JPEGs at reduced scale — with photometric variations and turned rigs, else
   synthetic samples). The per-voxel layers (Gemm: the depth-to-space projection and the heads Φσ, Φs) and the
@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 
+from occflownet.choices import INT8_RANGES
 from occflownet.export.onnx_export import ExportError, agreement, validate_proto
 from occflownet.export.parity import default_parity_samples, inference_frame_sample
 from occflownet.model import ModelConfig
@@ -106,9 +107,11 @@ def activation_matmuls(proto: onnx.ModelProto) -> list[str]:
 
 
 INT8_OP_TYPES = ["Conv"]
-# 7-bit weights: onnxruntime's u8s8 kernels on AVX2 CPUs without VNNI (this AMD EPYC: avx2, no avx512/vnni) sum
-# pairs of u8·s8 products in int16 (vpmaddubsw), which saturates with 8-bit weights; reduce_range avoids it.
-INT8_REDUCE_RANGE = True
+# The int8 weight range (``int8_range``, occflownet.choices.INT8_RANGES): "reduced" (default) quantises weights to
+# 7 bits: onnxruntime's u8s8 kernels on x86 CPUs without VNNI (AVX2 only) sum pairs of u8·s8 products in int16
+# (vpmaddubsw), which saturates with 8-bit weights, so a "full"-range graph is only exact on CPUs with VNNI or AMX
+# (one instruction multiplies and accumulates in int32). "full" keeps the 8th bit (half the rounding step of the
+# weights) for such CPUs; docs/model.md measures both.
 
 
 def calibration_frames(folder: str | Path, cfg: ModelConfig, count: int) -> list[dict]:
@@ -152,9 +155,11 @@ class _CalibrationReader:
 
 
 def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int = 6,
-               frame: str | Path | None = None) -> Path:
+               frame: str | Path | None = None, int8_range: str = "reduced") -> Path:
     """The int8 QDQ variant of ``src`` (see the module docstring), calibrated on ``frame`` (a real frame folder)
-    when given, else on synthetic samples."""
+    when given, else on synthetic samples; weights in ``int8_range`` (:data:`INT8_OP_TYPES` note)."""
+    if int8_range not in INT8_RANGES:
+        raise ValueError(f"int8_range must be one of {INT8_RANGES}, got {int8_range!r}")
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
     root = logging.getLogger()
@@ -163,7 +168,7 @@ def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int 
     try:
         quantize_static(str(src), str(dst), _CalibrationReader(cfg, calibration_samples, frame),
                         quant_format=QuantFormat.QDQ, op_types_to_quantize=INT8_OP_TYPES,
-                        nodes_to_exclude=activation_matmuls(onnx.load(str(src))), reduce_range=INT8_REDUCE_RANGE,
+                        nodes_to_exclude=activation_matmuls(onnx.load(str(src))), reduce_range=int8_range == "reduced",
                         per_channel=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         calibrate_method=CalibrationMethod.MinMax)
     finally:
@@ -177,14 +182,14 @@ def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int 
 
 
 def write_variants(fp32_path: str | Path, cfg: ModelConfig, fp16: bool = False, int8: bool = False,
-                   frame: str | Path | None = None) -> list[str]:
+                   frame: str | Path | None = None, int8_range: str = "reduced") -> list[str]:
     """Write the requested variants beside ``fp32_path``; returns one report line per variant."""
     fp32_path = Path(fp32_path)
     sample = inference_frame_sample(frame, cfg) if frame else default_parity_samples(cfg, [], seed=5)[0]
     reference = OnnxPredictor.open(fp32_path)(sample.inputs)
     lines = []
     todo = [("fp16", write_fp16, ())] if fp16 else []
-    todo += [("int8", write_int8, (cfg, 6, frame))] if int8 else []
+    todo += [("int8", write_int8, (cfg, 6, frame, int8_range))] if int8 else []
     for tag, writer, extra in todo:
         dst = _with_suffix(fp32_path, tag)
         try:

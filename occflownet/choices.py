@@ -11,6 +11,7 @@ FLOW_MOVERS: tuple[str, ...] = ("idw", "nearest")           # occupancy-flow mov
 SIGMA_READINGS: tuple[str, ...] = ("density", "opacity")    # how rendering reads σ (render/volume_render.py)
 RENDER_SEMANTICS: tuple[str, ...] = ("mixture", "normalized")  # CE on the rendered mixture or on it ÷ weight sum
 LR_SCHEDULES: tuple[str, ...] = ("constant", "cosine")      # the learning rate after the warm-up (train/schedule.py)
+INT8_RANGES: tuple[str, ...] = ("reduced", "full")          # int8 weights: 7-bit (any x86 CPU) or 8-bit (VNNI/AMX)
 
 
 def supervision_parts(mode: str) -> frozenset[str]:

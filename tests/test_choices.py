@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from occflownet import choices
-from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, LR_SCHEDULES, PRESET_NAMES, RENDER_SEMANTICS,
+from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, INT8_RANGES, LR_SCHEDULES, PRESET_NAMES, RENDER_SEMANTICS,
                                 SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
 from occflownet.cli import build_parser
 from occflownet.commands.train import config_from_args
@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parents[1]
 SETS = {"PRESET_NAMES": ("tiny", "base", "paper"), "HEAD_INITS": ("prior", "official"),
         "SUPERVISION_MODES": ("2d", "3d", "2d+3d"), "FLOW_MOVERS": ("idw", "nearest"),
         "SIGMA_READINGS": ("density", "opacity"), "RENDER_SEMANTICS": ("mixture", "normalized"),
-        "LR_SCHEDULES": ("constant", "cosine")}
+        "LR_SCHEDULES": ("constant", "cosine"), "INT8_RANGES": ("reduced", "full")}
 
 
 def test_the_sets_of_choices():
@@ -60,6 +60,7 @@ def test_the_command_lines_offer_the_same_choices():
     assert _choices_of("quickstart") == {"supervision": SUPERVISION_MODES}
     for verb in ("export", "predict"):
         assert _choices_of(verb)["preset"] == PRESET_NAMES
+    assert _choices_of("export")["int8_range"] == INT8_RANGES
 
 
 def _sources():
@@ -100,7 +101,7 @@ def _other_value(f: dataclasses.Field, value):
     if f.name in ("rays_per_step", "warmup_steps", "checkpoint_every", "free_rays_per_step", "horizon"):
         return 7
     if f.name in ("lr", "ema_decay", "threshold", "time_limit_s", "density_scale", "free_space_weight",
-                  "weight_decay", "grad_clip", "render_depth_weight", "free_prior_weight"):
+                  "weight_decay", "grad_clip", "render_depth_weight", "free_prior_weight", "density_logit_clip"):
         return 0.125
     if isinstance(value, int):
         return value + 3

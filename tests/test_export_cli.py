@@ -63,5 +63,17 @@ def test_fp16_and_int8_variants(tmp_path):
         assert [i.name for i in session.get_inputs()] == ["images", "intrinsics", "cam2ego"]
     ops = {n.op_type for n in onnx.load(str(tmp_path / "m.int8.onnx")).graph.node}
     assert {"QuantizeLinear", "DequantizeLinear"} <= ops
+    # int8_range: 7-bit weights (the default, exact on any x86 CPU) span at most ±64, 8-bit ones use the full ±127
+    from occflownet.export.variants import write_int8
+
+    full = write_int8(src, tmp_path / "m.full.onnx", exported_tiny()[2].cfg, int8_range="full")
+    spans = {}
+    for tag, path in (("reduced", tmp_path / "m.int8.onnx"), ("full", full)):
+        weights = [onnx.numpy_helper.to_array(i) for i in onnx.load(str(path)).graph.initializer
+                   if i.data_type == onnx.TensorProto.INT8 and len(i.dims) == 4]
+        spans[tag] = max(int(np.abs(w.astype(np.int32)).max()) for w in weights)
+    assert spans["reduced"] <= 64 < spans["full"] <= 127
+    with pytest.raises(ValueError, match="int8_range"):
+        write_int8(src, tmp_path / "m.bad.onnx", exported_tiny()[2].cfg, int8_range="4bit")
     diffs = [float(line.rsplit("diff ", 1)[1]) for line in lines]
     assert max(diffs) < 0.05 and not np.isnan(diffs).any()

@@ -1,6 +1,7 @@
 """`occflownet export`: export a model to ONNX (contract v1) with a torch ↔ onnxruntime parity check."""
 import sys
 
+from occflownet.choices import INT8_RANGES
 from occflownet.commands.model_source import add_model_source, source_problem
 
 HELP = "export a model to ONNX with parity check"
@@ -14,6 +15,9 @@ def add_arguments(parser):
     parser.add_argument("--fp16", action="store_true", help="also write <out>.fp16.onnx (float16 weights/compute)")
     parser.add_argument("--int8", action="store_true",
                         help="also write <out>.int8.onnx (static QDQ quantisation, calibrated on synthetic samples)")
+    parser.add_argument("--int8-range", choices=INT8_RANGES, default="reduced",
+                        help="int8 weights: 7-bit, exact on every x86 CPU (reduced, the default) or 8-bit, for CPUs "
+                             "with VNNI or AMX (full; on AVX2-only CPUs onnxruntime's kernels may saturate)")
 
 
 def run(args) -> int:
@@ -36,7 +40,8 @@ def run(args) -> int:
 
         try:
             frame = args.parity_frame[0] if args.parity_frame else None
-            for line in write_variants(result.path, model.cfg, fp16=args.fp16, int8=args.int8, frame=frame):
+            for line in write_variants(result.path, model.cfg, fp16=args.fp16, int8=args.int8, frame=frame,
+                                       int8_range=args.int8_range):
                 print(line)
         except (ExportError, ValueError, RuntimeError) as exc:
             print(f"occflownet export: variant failed: {exc}", file=sys.stderr)
