@@ -77,6 +77,8 @@ class TrainConfig:
     free_rays_per_step: int = option(2048, "free rays per sample per step (with --free-space/--free-beyond-grid; "
                                            "--free-before-point renders as many of the rays' free stretches)")
     free_space_weight: float = option(1.0, "weight of the free-space term -log(1 - opacity)")
+    bev_flip: bool = option(False, "mirror each training sample's ego frame in x and in y, each with probability "
+                                   "0.5 (the official recipe's BEV augmentation; occflownet/train/augment.py)")
     max_steps: int = option(1000, "optimisation steps")
     time_limit_s: float = option(0.0, "stop with a checkpoint after this many seconds (0: no limit)",
                                  flag="time-limit")

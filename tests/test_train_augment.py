@@ -1,0 +1,113 @@
+"""BEV flip augmentation (occflownet.train.augment): a flip is its own inverse, and a flipped item is the same
+scene in the mirrored frame — rays still end in voxels of their class, the lifting puts each pixel at the mirrored
+place, the LiDAR depth targets and the box moves agree."""
+import numpy as np
+import pytest
+import torch
+
+from occflownet.occ3d import GRID, Grid
+from occflownet.train.augment import BevFlip
+from occflownet.train.dataset import TrainingSamples
+from occflownet.train.recipe import TrainConfig
+
+FLIPS = [BevFlip(True, False), BevFlip(False, True), BevFlip(True, True)]
+
+
+def _items(root, flip: bool) -> TrainingSamples:
+    """The training items of every keyframe of ``root`` with rays, depth points, 3D labels and box moves."""
+    from occflownet.data.flow import flow_path, load_flow_records
+    from occflownet.data.index import load_index
+
+    index = load_index(root)
+    config = TrainConfig(dataroot=str(root), supervision="2d+3d", flow=True, rays_per_step=3000, bev_flip=flip)
+    return TrainingSamples(root, index, index.split_positions("all"), config,
+                           load_flow_records(flow_path(root, index.version)))
+
+
+def _label_agreement(item) -> float:
+    """Share of the t = 0 rays whose point (origin + depth · direction) lies in a voxel of their own label."""
+    t0 = item["ray_volume"] == 0
+    points = (item["ray_origins"] + item["ray_depths"][:, None] * item["ray_directions"])[t0].numpy()
+    index = GRID.index_of(points)
+    inside = np.all((index >= 0) & (index < np.asarray(GRID.shape)), axis=1)
+    semantics = item["occ_semantics"].numpy()
+    labels = semantics[tuple(index[inside].T)]
+    return float(np.mean(labels == item["ray_labels"][t0].numpy()[inside]))
+
+
+def test_a_flip_is_its_own_inverse(prepared_synth_root):
+    root, _ = prepared_synth_root
+    item = _items(root, False)[(2, 5)]
+    for flip in FLIPS:
+        back = flip.apply(flip.apply(item))
+        for key in ("cam2ego", "ray_origins", "ray_directions", "depth_points", "occ_semantics", "occ_mask"):
+            assert torch.equal(back[key], item[key]), key
+        np.testing.assert_array_equal(back["flow"]["voxels"], item["flow"]["voxels"])
+        np.testing.assert_allclose(back["flow"]["transforms"], item["flow"]["transforms"], atol=1e-6)
+    assert BevFlip().apply(item) is item
+
+
+def test_flipped_rays_end_in_voxels_of_their_class_as_often_as_unflipped(prepared_synth_root):
+    root, _ = prepared_synth_root
+    item = _items(root, False)[(2, 5)]
+    before = _label_agreement(item)
+    assert before > 0.9
+    for flip in FLIPS:
+        flipped = flip.apply(item)
+        assert flipped["occ_semantics"].shape == item["occ_semantics"].shape
+        assert _label_agreement(flipped) == pytest.approx(before, abs=0.01)
+        # the mirrored labels are not the labels: the check above could not pass by accident
+        assert not torch.equal(flipped["occ_semantics"], item["occ_semantics"])
+
+
+def test_the_lifting_and_the_depth_targets_follow_the_flip(prepared_synth_root):
+    from occflownet.model.lift import frustum_points
+    from occflownet.train.losses import lidar_depth_targets
+
+    root, _ = prepared_synth_root
+    item = _items(root, False)[(1, 0)]
+    k = item["intrinsics"][None] / 16.0
+    k[..., 2, 2] = 1.0
+    depths = torch.tensor([2.0, 7.5, 20.0])
+    for flip in FLIPS:
+        flipped = flip.apply(item)
+        plain = frustum_points(k, item["cam2ego"][None], depths, 6, 10)
+        mirrored = frustum_points(k, flipped["cam2ego"][None], depths, 6, 10)
+        torch.testing.assert_close(mirrored, plain * torch.from_numpy(flip.signs), rtol=1e-5, atol=1e-4)
+        targets = [lidar_depth_targets(k, it["cam2ego"][None], [it["depth_points"]], (6, 10), depths)
+                   for it in (item, flipped)]
+        assert torch.equal(*targets) and int((targets[0] >= 0).sum()) > 0
+
+
+def test_the_box_moves_move_mirrored_voxels_to_mirrored_places(prepared_synth_root):
+    root, _ = prepared_synth_root
+    item = _items(root, False)[(2, 5)]
+    moves = item["flow"]
+    assert len(moves["transforms"]) > 0
+    centres = np.stack([GRID.centers(a)[moves["voxels"][:, a]] for a in range(3)], axis=1)
+    for flip in FLIPS:
+        mirrored = flip.apply(item)["flow"]
+        m_centres = np.stack([GRID.centers(a)[mirrored["voxels"][:, a]] for a in range(3)], axis=1)
+        np.testing.assert_allclose(m_centres, centres * flip.signs, atol=1e-6)
+        for k in range(len(moves["transforms"])):
+            rows = moves["box"] == k
+            moved = centres[rows] @ moves["transforms"][k][:3, :3].T + moves["transforms"][k][:3, 3]
+            m_moved = m_centres[rows] @ mirrored["transforms"][k][:3, :3].T + mirrored["transforms"][k][:3, 3]
+            np.testing.assert_allclose(m_moved, moved * flip.signs, atol=1e-4)
+
+
+def test_the_dataset_draws_flips_deterministically_and_leaves_other_draws_alone(prepared_synth_root):
+    root, _ = prepared_synth_root
+    plain, flipping = _items(root, False), _items(root, True)
+    seen = set()
+    for step in range(12):
+        a, b = plain[(3, step)], flipping[(3, step)]
+        assert torch.equal(b["ray_depths"], a["ray_depths"]) and torch.equal(b["ray_labels"], a["ray_labels"])
+        signs = torch.sign(b["ray_directions"] * a["ray_directions"]).mode(dim=0).values
+        seen.add(tuple(signs[:2].tolist()))
+        assert torch.equal(flipping[(3, step)]["cam2ego"], b["cam2ego"])          # the same key, the same flip
+        if tuple(signs[:2].tolist()) == (1.0, 1.0):
+            assert torch.equal(b["occ_semantics"], a["occ_semantics"])
+    assert len(seen) >= 3                                                          # flips do happen, both axes
+    with pytest.raises(ValueError, match="symmetric"):
+        BevFlip(True).apply(plain[(3, 0)], Grid(lower=(-40.0, -30.0, -1.0), upper=(40.0, 50.0, 5.4)))
