@@ -9,7 +9,7 @@ defaults — what a user of each would get — on the prepared root W (split ``a
 log record every step. Steps/s = (steps − skip) over the wall time between the ``skip``-th and the last log record
 (the first steps compile numba kernels, fill caches and start the data workers). The sides alternate for
 ``--rounds`` rounds (baseline, today, baseline, today, ...) so that both see the same machine load; the table gives
-the median per side and the ratio. ``--baseline-extra`` / ``--extra`` add options to one side only (for example
+the median per side, the ratio and each side's peak resident memory (the largest over its runs). ``--baseline-extra`` / ``--extra`` add options to one side only (for example
 ``--no-amp`` to time today's code in float32).
 
 Configurations (``CONFIGS``): ``3d`` (3D labels on every voxel, the official 3D training), ``3d-mask`` (3D labels
@@ -38,6 +38,17 @@ CONFIGS = {
 }
 
 
+# Runs `occflownet train` in this interpreter and writes the process's peak RSS (MB) to the file named first.
+_RUN_AND_MEASURE = """
+import resource, sys
+from occflownet.cli import main
+status = main(sys.argv[2:])
+with open(sys.argv[1], "w") as f:
+    f.write(str(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
+sys.exit(status)
+"""
+
+
 def steps_per_second(log: Path, skip: int) -> float:
     """(steps − skip) / seconds between the log records of step ``skip`` and of the last step."""
     records = [json.loads(line) for line in log.read_text().splitlines()]
@@ -47,19 +58,21 @@ def steps_per_second(log: Path, skip: int) -> float:
 
 
 def run_side(tree: Path | None, dataroot: str, preset: str, config: str, steps: int, skip: int, extra: list[str],
-             workdir: Path) -> float:
-    """One ``occflownet train`` of ``tree`` (None: this checkout) → steps/s."""
+             workdir: Path) -> tuple[float, float]:
+    """One ``occflownet train`` of ``tree`` (None: this checkout) → (steps/s, peak RSS in MB)."""
     out = Path(tempfile.mkdtemp(dir=workdir))
     env = dict(os.environ)
     if tree is not None:  # import the baseline's package first (its occflownet shadows the installed one)
         env["PYTHONPATH"] = os.pathsep.join([str(tree), env.get("PYTHONPATH", "")])
-    cmd = [sys.executable, "-m", "occflownet", "train", "--preset", preset, "--dataroot", dataroot, "--split", "all",
+    rss = out / "peak_rss_mb"
+    cmd = [sys.executable, "-c", _RUN_AND_MEASURE, str(rss), "train", "--preset", preset, "--dataroot", dataroot,
+           "--split", "all",
            "--out", str(out), "--max-steps", str(steps), "--log-every", "1", "--checkpoint-every", str(10 * steps),
            "--quiet", *CONFIGS[config], *extra]
     proc = subprocess.run(cmd, env=env, cwd=workdir, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
-    return steps_per_second(out / "log.jsonl", skip)
+    return steps_per_second(out / "log.jsonl", skip), float(rss.read_text())
 
 
 def baseline_tree(rev: str, workdir: Path) -> Path:
@@ -94,15 +107,17 @@ def main(argv=None) -> int:
                                                       shlex.split(args.baseline_extra), workdir))
                     sides["today"].append(run_side(None, args.dataroot, args.preset, config, args.steps, args.skip,
                                                    shlex.split(args.extra), workdir))
-                base, today = (statistics.median(v) for v in sides.values())
+                (base, base_mb), (today, today_mb) = ((statistics.median(r[0] for r in v), max(r[1] for r in v))
+                                                      for v in sides.values())
                 rows.append(f"| {args.preset} {config} | {base:.2f} | {today:.2f} | **{today / base:.2f}×** | "
-                            f"{', '.join(f'{v:.2f}' for v in sides['baseline'])} / "
-                            f"{', '.join(f'{v:.2f}' for v in sides['today'])} |")
+                            f"{base_mb:.0f} / {today_mb:.0f} | "
+                            f"{', '.join(f'{v:.2f}' for v, _ in sides['baseline'])} / "
+                            f"{', '.join(f'{v:.2f}' for v, _ in sides['today'])} |")
                 print(rows[-1], flush=True)
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], capture_output=True)
-    print(f"\n| config | baseline {args.baseline_commit} steps/s | today steps/s | today ÷ baseline | "
-          f"per round (baseline / today) |\n|---|---|---|---|---|")
+    print(f"\n| config | baseline {args.baseline_commit} steps/s | today steps/s | today ÷ baseline | peak RSS MB "
+          f"(baseline / today) | per round (baseline / today) |\n|---|---|---|---|---|---|")
     print("\n".join(rows))
     print(f"(median of {args.rounds} interleaved rounds, steps {args.skip}..{args.steps} of each run, data loading "
           f"included; load average {os.getloadavg()[0]:.1f}; {time.strftime('%Y-%m-%d %H:%M')})")
