@@ -46,7 +46,7 @@ def random_model() -> Path:
 
 @pytest.fixture(scope="session")
 def trained_model() -> Path:
-    """The briefly trained tiny checkpoint (3D labels, ~2 % occupied voxels on the real frame), exported."""
+    """The briefly trained tiny checkpoint (3D labels, about 1 % occupied voxels on the real frame), exported."""
     from occflownet.export.onnx_export import export_model
     from occflownet.model import load_checkpoint
 
