@@ -14,7 +14,7 @@ import shutil
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,16 +32,62 @@ class QuickstartConfig:
     (``occflownet/options.py``)."""
 
     out: str = option("quickstart", "folder for the world, the run, the model and the pictures")
-    scenes: int = option(3, "synthetic scenes (the last one is the val split)")
-    frames: int = option(16, "keyframes per scene")
+    scenes: int = option(6, "synthetic scenes (the last one is the val split); more, shorter scenes generalise "
+                                 "better than few long ones at the same cost (docs/training.md)")
+    frames: int = option(8, "keyframes per scene")
     seed: int = option(0, "seed of the world and of the training run")
     train_minutes: float = option(7.0, "training time budget in minutes")
-    max_steps: int = option(1000, "step cap (about the time budget on a 2-core CPU)")
+    max_steps: int = option(3000, "step cap (5.5 min on the 2-core reference CPU; a slower one stops at the time "
+                                     "budget)")
     supervision: str = option("3d", "3d: within minutes on a CPU, 3D labels inside the camera mask give the model "
                                     "closest to the street of the recipes measured; 2d needs a far longer budget "
                                     "(docs/ablation.md, docs/training.md)", choices=SUPERVISION_MODES)
     voxel_mask: bool = option(True, "3D voxel losses only inside mask_camera (train --voxel-mask; the quickest "
                                     "recipe measured, docs/training.md)")
+
+
+@dataclass(frozen=True)
+class StageCosts:
+    """What each stage of the quickstart costs per unit of work on the reference machine, and that machine's float32
+    matmul rate: the basis of the estimate printed at the start (:func:`estimate_minutes`). Measured on the 2-core
+    development machine (AMD EPYC, AVX-512 with bf16) by ``python benchmarks/bench_quickstart.py``, which runs the
+    quickstart and divides each stage's seconds by its units (docs/training.md)."""
+
+    matmul_gflops: float = 237.0           # torch float32 matmul 1024³, 2 threads (:func:`matmul_gflops`)
+    synth_per_keyframe: float = 0.88       # seconds: render, LiDAR, sweeps, labels of one keyframe
+    prepare_per_keyframe: float = 0.01
+    train_setup: float = 2.0               # seconds before the first step (numba compilation, first batches)
+    train_per_step: float = 0.111          # tiny, 3D labels in mask_camera, bf16 where native
+    eval_per_keyframe: float = 0.16
+    export: float = 12.4                   # export with its parity checks, the picture and the viewer file
+
+
+def matmul_gflops(size: int = 1024, seconds: float = 0.3) -> float:
+    """This machine's float32 matmul rate (GFLOP/s) with torch's threads: repeated ``size``³ products for about
+    ``seconds`` after one warm-up product."""
+    import torch
+
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    torch.mm(a, b)
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        torch.mm(a, b)
+        n += 1
+    return 2 * size ** 3 * n / (time.perf_counter() - t0) / 1e9
+
+
+def estimate_minutes(cfg: "QuickstartConfig", gflops: float, costs: StageCosts = StageCosts()) -> dict[str, float]:
+    """Minutes per stage on a machine of ``gflops`` (:func:`matmul_gflops`): the reference costs scaled by the matmul
+    rates; training is the smaller of its step cap and its time budget. A rough guide (±30 % on machines like the
+    reference, more on others), printed so that a user knows what to expect; nothing depends on it."""
+    scale = costs.matmul_gflops / max(gflops, 1e-3)
+    keyframes = cfg.scenes * cfg.frames
+    val = cfg.frames                                          # the last scene is the val split
+    train = min(cfg.train_minutes * 60, costs.train_setup + cfg.max_steps * costs.train_per_step * scale)
+    seconds = {"synth": keyframes * costs.synth_per_keyframe * scale,
+               "prepare": keyframes * costs.prepare_per_keyframe * scale, "train": train,
+               "eval": val * costs.eval_per_keyframe * scale, "export": costs.export * scale}
+    return {k: v / 60 for k, v in seconds.items()}
 
 
 @dataclass(frozen=True)
@@ -57,13 +103,14 @@ class QuickstartPaths:
     picture: Path
     viewer: Path
     example: Path
+    timings: Path
 
     @classmethod
     def under(cls, out: Path) -> QuickstartPaths:
         return cls(world=out / "world", run=out / "run", checkpoint=out / "run" / "checkpoints" / "last.pt",
                    predictions=out / "predictions", eval_json=out / "eval.json", onnx=out / "model.onnx",
                    picture=out / "side_by_side.png", viewer=out / "view.html",
-                   example=out / "example")
+                   example=out / "example", timings=out / "timings.json")
 
 
 def _announce(log: Callable[[str], None], n: int, argv: list[str], note: str = "") -> None:
@@ -77,19 +124,35 @@ def run_quickstart(cfg: QuickstartConfig = QuickstartConfig(),
     ``log`` was told which stage failed."""
     paths = QuickstartPaths.under(Path(cfg.out).resolve())
     t0 = time.monotonic()
+    log(_estimate_line(cfg))
     stages = (("synth", _synth), ("prepare", _prepare), ("train", _train), ("eval", _eval), ("export", _export))
-    result = {}
+    result, seconds = {}, {}
     for n, (name, stage) in enumerate(stages, 1):
+        started = time.monotonic()
         try:
             result[name] = stage(cfg, paths, lambda argv, note="": _announce(log, n, argv, note))
         except Exception:
             log(f"quickstart: stage `{name}` failed; fix the error and re-run (finished stages are reused: the "
                 "world is kept and training resumes)")
             raise
+        seconds[name] = time.monotonic() - started
+    started = time.monotonic()
     sample = first_val_sample(result["prepare"].index)
     write_example(paths.world, sample, paths.example)
     write_picture(paths.world, sample, paths.predictions, paths.picture, paths.viewer)
-    return {"paths": paths, "eval": result["eval"], "minutes": (time.monotonic() - t0) / 60}
+    seconds["export"] += time.monotonic() - started        # the picture and the viewer file count with the export
+    paths.timings.write_text(json.dumps({"seconds": seconds, "config": asdict(cfg)}, indent=1) + "\n")
+    return {"paths": paths, "eval": result["eval"], "minutes": (time.monotonic() - t0) / 60, "seconds": seconds}
+
+
+def _estimate_line(cfg: "QuickstartConfig") -> str:
+    """What the stages should take on this machine (:func:`estimate_minutes`), as one line."""
+    gflops = matmul_gflops()
+    minutes = estimate_minutes(cfg, gflops)
+    parts = ", ".join(f"{name} ~{m:.1f}" for name, m in minutes.items())
+    return (f"quickstart: on this machine (float32 matmul {gflops:.0f} GFLOP/s, the reference machine "
+            f"{StageCosts().matmul_gflops:.0f}) expect about {sum(minutes.values()):.0f} min: {parts} min "
+            f"(training stops at {cfg.max_steps} steps or after {cfg.train_minutes:g} min)")
 
 
 def _synth(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:

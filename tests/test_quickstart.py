@@ -3,6 +3,7 @@ import json
 import shlex
 
 import numpy as np
+import pytest
 
 from occflownet.cli import build_parser, main
 from occflownet.commands.train import config_from_args
@@ -16,6 +17,10 @@ def test_quickstart_small(tmp_path, capsys):
     captured = capsys.readouterr()
     printed = captured.out
     assert "quickstart finished" in printed and "occflownet serve --model" in printed
+    estimate = next(line for line in captured.err.splitlines() if line.startswith("quickstart: on this machine"))
+    assert "GFLOP/s" in estimate and "train ~" in estimate        # what each stage should take, said first
+    timings = json.loads((out / "timings.json").read_text())["seconds"]
+    assert sorted(timings) == ["eval", "export", "prepare", "synth", "train"] and min(timings.values()) > 0
     # the announced train command, run again, is the run that trained: the same train_config.json
     announced = next(line for line in captured.err.splitlines() if line.startswith("[3/5] occflownet train "))
     again = config_from_args(build_parser().parse_args(shlex.split(announced.split(" ", 2)[2])))
@@ -38,3 +43,16 @@ def test_quickstart_small(tmp_path, capsys):
     assert "CAM_FRONT" in (tmp_path / "grid.html").read_text()
     with np.load(tmp_path / "grid.npz") as z:
         assert z["occupancy"].shape == (200, 200, 16)
+
+
+def test_the_estimate_scales_with_the_machine_and_caps_training_at_its_budget():
+    from occflownet.quickstart import QuickstartConfig, StageCosts, estimate_minutes
+
+    costs = StageCosts(matmul_gflops=100.0, synth_per_keyframe=2.0, prepare_per_keyframe=0.5, train_setup=6.0,
+                       train_per_step=0.3, eval_per_keyframe=1.0, export=12.0)
+    cfg = QuickstartConfig(scenes=3, frames=10, train_minutes=7.0, max_steps=1000)
+    same = estimate_minutes(cfg, 100.0, costs)
+    assert same == pytest.approx({"synth": 1.0, "prepare": 0.25, "train": 5.1, "eval": 10 / 60, "export": 0.2})
+    slower = estimate_minutes(cfg, 50.0, costs)                   # half the matmul rate: twice the time ...
+    assert slower["synth"] == pytest.approx(2.0) and slower["export"] == pytest.approx(0.4)
+    assert slower["train"] == pytest.approx(7.0)                  # ... but training stops at its time budget

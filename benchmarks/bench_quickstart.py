@@ -1,0 +1,48 @@
+"""The quickstart's stage costs on this machine: runs ``occflownet quickstart`` (or reads the ``timings.json`` of a
+finished one) and prints each stage's seconds per unit of work beside this machine's matmul rate, as the
+``StageCosts`` that ``occflownet/quickstart.py`` scales into the estimate it prints at the start.
+
+    python benchmarks/bench_quickstart.py --out /tmp/qs [--reuse] [quickstart options ...]
+
+``--reuse``: do not run; read ``OUT/timings.json`` and ``OUT/run/log.jsonl`` of a quickstart that ran on this
+machine. Steps are counted from the run's log (the time limit may stop training before ``--max-steps``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+
+def stage_costs(out: Path) -> dict:
+    """{field of StageCosts: value} from a finished quickstart folder (timings.json, run/log.jsonl)."""
+    timings = json.loads((out / "timings.json").read_text())
+    seconds, cfg = timings["seconds"], timings["config"]
+    log = [json.loads(line) for line in (out / "run" / "log.jsonl").read_text().splitlines()]
+    keyframes = cfg["scenes"] * cfg["frames"]
+    first, last = log[0], log[-1]                     # steps/s between the first and the last log record
+    per_step = (last["time"] - first["time"]) / max(1, last["step"] - first["step"])
+    return {"synth_per_keyframe": seconds["synth"] / keyframes, "prepare_per_keyframe": seconds["prepare"] / keyframes,
+            "train_setup": max(0.0, seconds["train"] - per_step * last["step"]), "train_per_step": per_step,
+            "eval_per_keyframe": seconds["eval"] / cfg["frames"], "export": seconds["export"], "steps": last["step"]}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", required=True)
+    p.add_argument("--reuse", action="store_true")
+    args, rest = p.parse_known_args(argv)
+    out = Path(args.out)
+    if not args.reuse:
+        subprocess.run([sys.executable, "-m", "occflownet", "quickstart", "--out", str(out), *rest], check=True)
+    from occflownet.quickstart import matmul_gflops
+
+    costs = {"matmul_gflops": matmul_gflops(seconds=2.0), **stage_costs(out)}
+    print(json.dumps({k: round(v, 3) for k, v in costs.items()}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
