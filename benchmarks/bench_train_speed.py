@@ -10,7 +10,7 @@ log record every step. Steps/s = (steps − skip) over the wall time between the
 (the first steps compile numba kernels, fill caches and start the data workers). The sides alternate for
 ``--rounds`` rounds (baseline, today, baseline, today, ...) so that both see the same machine load; the table gives
 the median per side, the ratio and each side's peak resident memory (the largest over its runs). ``--baseline-extra`` / ``--extra`` add options to one side only (for example
-``--no-amp`` to time today's code in float32).
+``--precision bf16`` to time today's code under bf16 autocast).
 
 Configurations (``CONFIGS``): ``3d`` (3D labels on every voxel, the official 3D training), ``3d-mask`` (3D labels
 inside ``mask_camera``: the quickstart's recipe), ``base`` (the 2D base: rendering, t ∈ [−3, 3], dynamic filter,

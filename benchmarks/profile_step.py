@@ -25,6 +25,8 @@ from collections import defaultdict
 
 from bench_train_step import CONFIGS
 
+from occflownet.choices import PRECISIONS
+
 PARTS = ("backbone", "neck", "depth_head", "lift", "decoder")
 
 
@@ -58,7 +60,7 @@ class StageClock:
 
 
 def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, rays: int | None, ops: int,
-        amp: bool = True) -> dict:
+        precision: str = "auto") -> dict:
     import torch
     from torch.profiler import ProfilerActivity, profile
 
@@ -68,7 +70,8 @@ def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, ray
     from occflownet.train.step import LossComputer
 
     cfg = TrainConfig(preset=preset, dataroot=dataroot, split="all", out="/tmp/profile_step", rays_per_step=rays,
-                      num_workers=num_workers, max_steps=steps + 1, amp=amp, **CONFIGS[name])
+                      num_workers=num_workers, max_steps=steps + 1, precision=precision,
+                      **CONFIGS[name])
     device = torch.device("cpu")
     index, positions, flows = loop._training_data(cfg)
     state = TrainingState.create(cfg, loop._model_config(cfg, index, positions), device)
@@ -81,7 +84,7 @@ def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, ray
     state.optimizer.step = clock.timed("optimizer", state.optimizer.step)
     state.ema.update = clock.timed("EMA", state.ema.update)
     generator = torch.Generator().manual_seed(0)
-    amp = loop.autocast_dtype(device, cfg.amp)
+    amp = loop.autocast_dtype(device, cfg.precision)
     batches = iter(loop._data_loader(cfg, index, positions, flows, 0, loop.ddp.DistInfo()))
 
     def step(n: int) -> None:
@@ -130,20 +133,20 @@ def main() -> int:
     ap.add_argument("--num-workers", type=int, default=0)
     ap.add_argument("--rays", type=int, default=None, help="rays per step (default: the preset's)")
     ap.add_argument("--ops", type=int, default=12, help="rows of the operator table")
-    ap.add_argument("--no-amp", action="store_true", help="float32 even where --amp would autocast to bf16")
+    ap.add_argument("--precision", default="auto", choices=PRECISIONS, help="train --precision (auto: float32 on CPUs; bf16: autocast "
+                    "where the CPU computes bf16 natively)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(one(args.dataroot, args.preset, args.child, args.steps, args.num_workers, args.rays,
-                             args.ops, amp=not args.no_amp)))
+                             args.ops, precision=args.precision)))
         return 0
     for name in args.configs.split(","):
         cmd = [sys.executable, __file__, "--dataroot", args.dataroot, "--preset", args.preset, "--steps",
                str(args.steps), "--num-workers", str(args.num_workers), "--ops", str(args.ops), "--child", name]
         if args.rays:
             cmd += ["--rays", str(args.rays)]
-        if args.no_amp:
-            cmd.append("--no-amp")
+        cmd += ["--precision", args.precision]
         res = subprocess.run(cmd, capture_output=True, text=True)
         if res.returncode != 0:
             print(f"## {args.preset} {name}: failed\n{res.stderr[-2000:]}")

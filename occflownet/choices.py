@@ -12,6 +12,7 @@ SIGMA_READINGS: tuple[str, ...] = ("density", "opacity")    # how rendering read
 RENDER_SEMANTICS: tuple[str, ...] = ("mixture", "normalized")  # CE on the rendered mixture or on it ÷ weight sum
 LR_SCHEDULES: tuple[str, ...] = ("constant", "cosine")      # the learning rate after the warm-up (train/schedule.py)
 INT8_RANGES: tuple[str, ...] = ("reduced", "full")          # int8 weights: 7-bit (any x86 CPU) or 8-bit (VNNI/AMX)
+PRECISIONS: tuple[str, ...] = ("auto", "bf16", "fp32")     # training arithmetic of the network (train/loop.py)
 
 
 def supervision_parts(mode: str) -> frozenset[str]:

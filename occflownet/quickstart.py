@@ -37,7 +37,7 @@ class QuickstartConfig:
     frames: int = option(8, "keyframes per scene")
     seed: int = option(0, "seed of the world and of the training run")
     train_minutes: float = option(7.0, "training time budget in minutes")
-    max_steps: int = option(3000, "step cap (5.5 min on the 2-core reference CPU; a slower one stops at the time "
+    max_steps: int = option(3000, "step cap (6 min on the 2-core reference CPU; a slower one stops at the time "
                                      "budget)")
     supervision: str = option("3d", "3d: within minutes on a CPU, 3D labels inside the camera mask give the model "
                                     "closest to the street of the recipes measured; 2d needs a far longer budget "
@@ -54,12 +54,12 @@ class StageCosts:
     quickstart and divides each stage's seconds by its units (docs/training.md)."""
 
     matmul_gflops: float = 237.0           # torch float32 matmul 1024³, 2 threads (:func:`matmul_gflops`)
-    synth_per_keyframe: float = 0.88       # seconds: render, LiDAR, sweeps, labels of one keyframe
+    synth_per_keyframe: float = 0.83       # seconds: render, LiDAR, sweeps, labels of one keyframe
     prepare_per_keyframe: float = 0.01
-    train_setup: float = 2.0               # seconds before the first step (numba compilation, first batches)
-    train_per_step: float = 0.111          # tiny, 3D labels in mask_camera, bf16 where native
-    eval_per_keyframe: float = 0.16
-    export: float = 12.4                   # export with its parity checks, the picture and the viewer file
+    train_setup: float = 1.0               # seconds before the first step (numba compilation, first batches)
+    train_per_step: float = 0.122          # tiny, 3D labels in mask_camera, float32 (the CPU default)
+    eval_per_keyframe: float = 0.15
+    export: float = 11.9                   # export with its parity checks, the picture and the viewer file
 
 
 def matmul_gflops(size: int = 1024, seconds: float = 0.3) -> float:

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from occflownet import choices
-from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, INT8_RANGES, LR_SCHEDULES, PRESET_NAMES, RENDER_SEMANTICS,
-                                SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
+from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, INT8_RANGES, LR_SCHEDULES, PRECISIONS, PRESET_NAMES,
+                                RENDER_SEMANTICS, SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
 from occflownet.cli import build_parser
 from occflownet.commands.train import config_from_args
 from occflownet.options import config_argv
@@ -23,7 +23,8 @@ REPO = Path(__file__).resolve().parents[1]
 SETS = {"PRESET_NAMES": ("tiny", "base", "paper"), "HEAD_INITS": ("prior", "official"),
         "SUPERVISION_MODES": ("2d", "3d", "2d+3d"), "FLOW_MOVERS": ("idw", "nearest"),
         "SIGMA_READINGS": ("density", "opacity"), "RENDER_SEMANTICS": ("mixture", "normalized"),
-        "LR_SCHEDULES": ("constant", "cosine"), "INT8_RANGES": ("reduced", "full")}
+        "LR_SCHEDULES": ("constant", "cosine"), "INT8_RANGES": ("reduced", "full"),
+        "PRECISIONS": ("auto", "bf16", "fp32")}
 
 
 def test_the_sets_of_choices():
@@ -42,6 +43,7 @@ def test_configs_and_checks_read_the_one_definition():
     for bad, message in (({"flow_mover": "bilinear"}, "flow_mover must be one of"),
                          ({"head_init": "zeros"}, "head_init must be one of"),
                          ({"supervision": "4d"}, "supervision must be one of"),
+                         ({"precision": "fp16"}, "precision must be one of"),
                          ({"preset": "huge"}, "unknown preset")):
         with pytest.raises(ValueError, match=message):
             TrainConfig(**bad)
@@ -56,7 +58,7 @@ def test_the_command_lines_offer_the_same_choices():
     assert _choices_of("train") == {"preset": PRESET_NAMES, "supervision": SUPERVISION_MODES,
                                     "flow_mover": FLOW_MOVERS, "head_init": ("", *HEAD_INITS),
                                     "sigma_is": SIGMA_READINGS, "render_semantics": RENDER_SEMANTICS,
-                                    "lr_schedule": LR_SCHEDULES}
+                                    "lr_schedule": LR_SCHEDULES, "precision": PRECISIONS}
     assert _choices_of("quickstart") == {"supervision": SUPERVISION_MODES}
     for verb in ("export", "predict"):
         assert _choices_of(verb)["preset"] == PRESET_NAMES
@@ -114,7 +116,7 @@ def test_every_train_config_field_is_reachable_from_the_command_line():
     assert all(getattr(changed, f.name) != getattr(default, f.name) for f in dataclasses.fields(default))
     argv = ["train", *config_argv(changed, TrainConfig(preset=changed.preset), always=("preset",))]
     assert _parse_train(argv) == changed
-    assert "--time-limit" in argv and "--no-amp" in argv and "--grad-clip" in argv
+    assert "--time-limit" in argv and "--precision" in argv and "--grad-clip" in argv
 
 
 @pytest.mark.parametrize("cfg", [QuickstartConfig(), QuickstartConfig(supervision="2d", voxel_mask=False,

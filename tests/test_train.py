@@ -172,16 +172,18 @@ def test_free_space_beams_and_unmasked_voxel_losses_train(prepared_synth_root, t
     assert config["head_init"] == "official"
 
 
-def test_amp_uses_bf16_only_where_the_device_computes_it_natively(monkeypatch):
+def test_precision_autocasts_to_bf16_on_cuda_and_on_cpus_only_when_asked_and_native(monkeypatch):
     from occflownet.train.loop import autocast_dtype
-    cpu = torch.device("cpu")
-    assert autocast_dtype(torch.device("cuda"), amp=True) == torch.bfloat16
-    assert autocast_dtype(torch.device("cuda"), amp=False) is None
-    for avx512_bf16, amx, expected in ((False, False, None), (True, False, torch.bfloat16), (False, True, torch.bfloat16)):
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert autocast_dtype(cuda, "auto") == autocast_dtype(cuda, "bf16") == torch.bfloat16
+    assert autocast_dtype(cuda, "fp32") is None
+    for avx512_bf16, amx, native in ((False, False, False), (True, False, True), (False, True, True)):
         monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda v=avx512_bf16: v)
         monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda v=amx: v)
-        assert autocast_dtype(cpu, amp=True) == expected
-        assert autocast_dtype(cpu, amp=False) is None
+        assert autocast_dtype(cpu, "bf16") == (torch.bfloat16 if native else None)
+        assert autocast_dtype(cpu, "auto") is None and autocast_dtype(cpu, "fp32") is None
+    with pytest.raises(ValueError, match="precision"):
+        autocast_dtype(cpu, "fp16")
 
 
 def test_progress_bar_shows_what_the_run_processes_and_the_time_left_to_its_budget(tmp_path):

@@ -19,6 +19,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
+from occflownet.choices import PRECISIONS
 from occflownet.contract import calibration_json
 from occflownet.data.index import load_index
 from occflownet.model import get_preset
@@ -61,15 +62,19 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def autocast_dtype(device: torch.device, amp: bool = True) -> torch.dtype | None:
-    """The network's autocast dtype for ``--amp``: bfloat16 on CUDA and on CPUs with native bf16 arithmetic
-    (AVX512-BF16 or AMX), None (float32) elsewhere: emulated bf16 is slower than float32 (docs/training.md)."""
-    if not amp:
+def autocast_dtype(device: torch.device, precision: str = "auto") -> torch.dtype | None:
+    """The network's autocast dtype for ``--precision`` (:data:`~occflownet.choices.PRECISIONS`): bfloat16 on CUDA
+    unless ``fp32``; on a CPU only for ``bf16`` and only where it computes bf16 natively (AVX512-BF16 or AMX: emulated
+    bf16 is slower than float32); None (float32) otherwise. ``auto`` keeps CPUs in float32 because bf16 autocast
+    there, 1.4x faster a step, spiked the loss in long runs that float32 fitted (docs/training.md)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    if precision == "fp32":
         return None
     if device.type == "cuda":
         return torch.bfloat16
     native = device.type == "cpu" and (torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported())
-    return torch.bfloat16 if native else None
+    return torch.bfloat16 if precision == "bf16" and native else None
 
 
 def last_checkpoint(out) -> Path:
@@ -187,7 +192,7 @@ def _run_steps(state: TrainingState, net, losses: LossComputer, loader: Iterable
     """Optimisation steps until the loader ends (at ``max_steps``) or the time limit; rank 0 saves ``state`` to
     ``ckpt_path`` every ``checkpoint_every`` steps, at the last step and at the time limit."""
     cfg = state.cfg
-    amp_dtype = autocast_dtype(device, cfg.amp)
+    amp_dtype = autocast_dtype(device, cfg.precision)
     t_start = time.monotonic()
     state.model.train()
     for batch in loader:

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, LR_SCHEDULES, PRESET_NAMES, RENDER_SEMANTICS,
-                                SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
+from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, LR_SCHEDULES, PRECISIONS, PRESET_NAMES,
+                                RENDER_SEMANTICS, SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
 from occflownet.options import option
 
 # The per-preset recipe: the values a TrainConfig field left at None takes. The official values (AdamW 1e-4,
@@ -96,8 +96,11 @@ class TrainConfig:
     log_every: int = option(10, "steps between log records")
     seed: int = option(0, "seed of the weights, the sampling and the rays")
     num_workers: int = option(2, "data loader processes")
-    amp: bool = option(True, "bf16 autocast of the network where the device computes bf16 natively "
-                                   "(CUDA; CPUs with AVX512-BF16 or AMX); rendering and losses stay float32")
+    precision: str = option("auto", "the network's arithmetic in training: auto = bf16 autocast on CUDA, float32 "
+                                    "on CPUs; bf16 = bf16 autocast also on CPUs that compute it natively "
+                                    "(AVX512-BF16, AMX: 1.4x faster a step, but less stable in long runs, "
+                                    "docs/training.md); fp32 = float32 everywhere. Rendering and losses stay "
+                                    "float32", choices=PRECISIONS)
     device: str = option("auto", "torch device (auto: CUDA when available)")
     threshold: float | None = option(None, "τ stored with the model (default 0.35 for 2d, 0.30 with 3D labels)")
 
@@ -112,6 +115,8 @@ class TrainConfig:
             raise ValueError("horizon must be >= 0")
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.flow_mover not in FLOW_MOVERS:
             raise ValueError(f"flow_mover must be one of {FLOW_MOVERS}, got {self.flow_mover!r}")
         if self.head_init not in HEAD_INIT_CHOICES:

@@ -34,7 +34,7 @@ TRAIN_KEYS = ("config", "model", "ema_updates", "optimizer", "scheduler", "step"
 
 # TrainConfig fields a resumed run may change: how long and where it runs, not what it learns.
 CONTINUATION_FIELDS = frozenset({"dataroot", "out", "max_steps", "time_limit_s", "checkpoint_every", "log_every",
-                                 "num_workers", "device", "amp"})
+                                 "num_workers", "device", "precision"})
 
 
 class TrainingError(RuntimeError):
