@@ -59,6 +59,20 @@ class StageClock:
         module.register_forward_hook(lambda *_: self.end(name))
 
 
+class TimedCall:
+    """``obj`` with its calls made through ``timed_call`` and every other attribute its own (the loop calls the
+    LossComputer and also reads ``head_rows`` from it)."""
+
+    def __init__(self, obj, timed_call):
+        self._obj, self._timed_call = obj, timed_call
+
+    def __call__(self, *args, **kwargs):
+        return self._timed_call(*args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._obj, name)
+
+
 def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, rays: int | None, ops: int,
         precision: str = "auto") -> dict:
     import torch
@@ -80,7 +94,7 @@ def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, ray
     clock.hook_module("forward", state.model)
     for part in PARTS:
         clock.hook_module(f"forward: {part}", getattr(state.model, part))
-    losses_timed = clock.timed("losses (rendering included)", losses)
+    losses_timed = TimedCall(losses, clock.timed("losses (rendering included)", losses))
     state.optimizer.step = clock.timed("optimizer", state.optimizer.step)
     state.ema.update = clock.timed("EMA", state.ema.update)
     generator = torch.Generator().manual_seed(0)
