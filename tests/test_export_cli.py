@@ -63,6 +63,17 @@ def test_fp16_and_int8_variants(tmp_path):
         assert [i.name for i in session.get_inputs()] == ["images", "intrinsics", "cam2ego"]
     ops = {n.op_type for n in onnx.load(str(tmp_path / "m.int8.onnx")).graph.node}
     assert {"QuantizeLinear", "DequantizeLinear"} <= ops
+    # the image convolutions are quantised, the 3D decoder's (downstream of the voxel pooling) stay float32
+    from occflownet.export.variants import voxel_convs
+
+    fp32_convs = [n.name for n in onnx.load(str(src)).graph.node if n.op_type == "Conv"]
+    in_grid = set(voxel_convs(onnx.load(str(src))))
+    assert in_grid and len(in_grid) < len(fp32_convs)
+    int8 = onnx.load(str(tmp_path / "m.int8.onnx")).graph
+    producer = {o: n.op_type for n in int8.node for o in n.output}
+    quantised = {n.name: producer.get(n.input[1]) == "DequantizeLinear" for n in int8.node if n.op_type == "Conv"}
+    assert sorted(quantised) == sorted(fp32_convs)
+    assert all(quantised[name] != (name in in_grid) for name in fp32_convs)
     # int8_range: 7-bit weights (the default, exact on any x86 CPU) span at most ±64, 8-bit ones use the full ±127
     from occflownet.export.variants import write_int8
 
