@@ -147,8 +147,8 @@ def main() -> int:
     ap.add_argument("--num-workers", type=int, default=0)
     ap.add_argument("--rays", type=int, default=None, help="rays per step (default: the preset's)")
     ap.add_argument("--ops", type=int, default=12, help="rows of the operator table")
-    ap.add_argument("--precision", default="auto", choices=PRECISIONS, help="train --precision (auto: float32 on CPUs; bf16: autocast "
-                    "where the CPU computes bf16 natively)")
+    ap.add_argument("--precision", default="auto", choices=PRECISIONS,
+                    help="train --precision (auto: float32 on CPUs; bf16: autocast where the CPU computes it natively)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:

@@ -3,10 +3,11 @@
 - fp16: weights and activations in float16 (``onnxruntime.transformers.float16``); inputs/outputs keep their
   contract-v1 types, and the geometry/pooling/threshold ops stay in float32 (their indices must be exact).
 - int8: static QDQ quantisation (``onnxruntime.quantization.quantize_static``) of the image convolutions only
-  (:data:`INT8_OP_TYPES`; the 3D decoder's convolutions after the voxel pooling stay float32, :func:`voxel_convs`), per-channel int8 weights with 7-bit range (``int8_range="reduced"``, or 8-bit), uint8
-  activations calibrated (MinMax) on real-looking frames (:class:`_CalibrationReader`: the ``frame`` folder as the
-  inference paths decode it — JPEGs at reduced scale — with photometric variations and turned rigs, else
-  synthetic samples). The per-voxel layers (Gemm: the depth-to-space projection and the heads Φσ, Φs) and the
+  (:data:`INT8_OP_TYPES`; the 3D decoder's convolutions after the voxel pooling stay float32, :func:`voxel_convs`),
+  per-channel int8 weights with 7-bit range (``int8_range="reduced"``, or 8-bit), uint8 activations calibrated
+  (MinMax) on real-looking frames (:class:`_CalibrationReader`: the ``frame`` folder as the inference paths decode
+  it — JPEGs at reduced scale — with photometric variations and turned rigs, else synthetic samples). The
+  per-voxel layers (Gemm: the depth-to-space projection and the heads Φσ, Φs) and the
   image resampling MatMuls stay float32: σ ≥ τ and the argmax are decided there, and they are memory-bound
   (int8 would add quantise/dequantise passes over 640,000-row tensors and gain nothing).
 

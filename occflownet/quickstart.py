@@ -22,6 +22,7 @@ import numpy as np
 from occflownet.choices import SUPERVISION_MODES, supervision_parts
 from occflownet.contract import calibration_json
 from occflownet.data.index import load_index
+from occflownet.files import atomic_path
 from occflownet.options import config_argv, option
 from occflownet.train.recipe import TrainConfig
 
@@ -141,7 +142,8 @@ def run_quickstart(cfg: QuickstartConfig = QuickstartConfig(),
     write_example(paths.world, sample, paths.example)
     write_picture(paths.world, sample, paths.predictions, paths.picture, paths.viewer)
     seconds["export"] += time.monotonic() - started        # the picture and the viewer file count with the export
-    paths.timings.write_text(json.dumps({"seconds": seconds, "config": asdict(cfg)}, indent=1) + "\n")
+    with atomic_path(paths.timings) as tmp:
+        tmp.write_text(json.dumps({"seconds": seconds, "config": asdict(cfg)}, indent=1) + "\n")
     return {"paths": paths, "eval": result["eval"], "minutes": (time.monotonic() - t0) / 60, "seconds": seconds}
 
 

@@ -193,6 +193,9 @@ def _run_steps(state: TrainingState, net, losses: LossComputer, loader: Iterable
     ``ckpt_path`` every ``checkpoint_every`` steps, at the last step and at the time limit."""
     cfg = state.cfg
     amp_dtype = autocast_dtype(device, cfg.precision)
+    if cfg.precision == "bf16" and amp_dtype is None and info.is_main:
+        print("--precision bf16: this CPU has no native bf16 (AVX512-BF16 or AMX); training in float32",
+              file=sys.stderr)
     t_start = time.monotonic()
     state.model.train()
     for batch in loader:
