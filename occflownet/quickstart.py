@@ -77,7 +77,7 @@ def matmul_gflops(size: int = 1024, seconds: float = 0.3) -> float:
     return 2 * size ** 3 * n / (time.perf_counter() - t0) / 1e9
 
 
-def estimate_minutes(cfg: "QuickstartConfig", gflops: float, costs: StageCosts = StageCosts()) -> dict[str, float]:
+def estimate_minutes(cfg: QuickstartConfig, gflops: float, costs: StageCosts = StageCosts()) -> dict[str, float]:
     """Minutes per stage on a machine of ``gflops`` (:func:`matmul_gflops`): the reference costs scaled by the matmul
     rates; training is the smaller of its step cap and its time budget. A rough guide (±30 % on machines like the
     reference, more on others), printed so that a user knows what to expect; nothing depends on it."""
@@ -147,7 +147,7 @@ def run_quickstart(cfg: QuickstartConfig = QuickstartConfig(),
     return {"paths": paths, "eval": result["eval"], "minutes": (time.monotonic() - t0) / 60, "seconds": seconds}
 
 
-def _estimate_line(cfg: "QuickstartConfig") -> str:
+def _estimate_line(cfg: QuickstartConfig) -> str:
     """What the stages should take on this machine (:func:`estimate_minutes`), as one line."""
     gflops = matmul_gflops()
     minutes = estimate_minutes(cfg, gflops)

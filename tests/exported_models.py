@@ -53,9 +53,10 @@ def trained_tiny_checkpoint() -> Path:
     (torch vs onnxruntime, Python vs C++, two runtimes) disagree visibly where they differ, unlike a random-init
     model whose grid is all free. (Trained on every voxel instead, 80 steps mostly learn "free", which the Occ3D
     labels are everywhere nothing was observed: 0.2 % occupied on the random parity images against 1.1 % masked.)
-    Trained in float32 (``--precision fp32``, explicit though it is the CPU default): under bf16 autocast the occupied fraction after 80 steps swung from 0.42 % to
-    1.4 % with the thread count (a CI run fell under the tests' 0.5 % floor); float32 gave 0.8–1.2 % at 1 and 2
-    threads (AVX-512 CPU with native bf16), and float32 runs the same arithmetic whether or not a CPU has bf16."""
+    Trained in float32 (``--precision fp32``, explicit though it is the CPU default): under bf16 autocast the
+    occupied fraction after 80 steps swung from 0.42 % to 1.4 % with the thread count (a CI run fell under the
+    tests' 0.5 % floor); float32 gave 0.8–1.2 % at 1 and 2 threads (AVX-512 CPU with native bf16), and float32 runs
+    the same arithmetic whether or not a CPU has bf16."""
     from occflownet.cli import main
 
     root = workdir() / "trained-world"
