@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from occflownet import choices
-from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, INT8_RANGES, LR_SCHEDULES, PRECISIONS, PRESET_NAMES,
-                                RENDER_SEMANTICS, SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
+from occflownet.choices import (FLOW_MOVERS, FREE_STRETCH_RULES, HEAD_INITS, INT8_RANGES, LR_SCHEDULES, PRECISIONS,
+                                PRESET_NAMES, RENDER_SEMANTICS, SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
 from occflownet.cli import build_parser
 from occflownet.commands.train import config_from_args
 from occflownet.options import config_argv
@@ -24,7 +24,7 @@ SETS = {"PRESET_NAMES": ("tiny", "base", "paper"), "HEAD_INITS": ("prior", "offi
         "SUPERVISION_MODES": ("2d", "3d", "2d+3d"), "FLOW_MOVERS": ("idw", "nearest"),
         "SIGMA_READINGS": ("density", "opacity"), "RENDER_SEMANTICS": ("mixture", "normalized"),
         "LR_SCHEDULES": ("constant", "cosine"), "INT8_RANGES": ("reduced", "full"),
-        "PRECISIONS": ("auto", "bf16", "fp32")}
+        "PRECISIONS": ("auto", "bf16", "fp32"), "FREE_STRETCH_RULES": ("fraction", "points")}
 
 
 def test_the_sets_of_choices():
@@ -44,6 +44,7 @@ def test_configs_and_checks_read_the_one_definition():
                          ({"head_init": "zeros"}, "head_init must be one of"),
                          ({"supervision": "4d"}, "supervision must be one of"),
                          ({"precision": "fp16"}, "precision must be one of"),
+                         ({"free_stretch": "half"}, "free_stretch must be one of"),
                          ({"preset": "huge"}, "unknown preset")):
         with pytest.raises(ValueError, match=message):
             TrainConfig(**bad)
@@ -58,7 +59,8 @@ def test_the_command_lines_offer_the_same_choices():
     assert _choices_of("train") == {"preset": PRESET_NAMES, "supervision": SUPERVISION_MODES,
                                     "flow_mover": FLOW_MOVERS, "head_init": ("", *HEAD_INITS),
                                     "sigma_is": SIGMA_READINGS, "render_semantics": RENDER_SEMANTICS,
-                                    "lr_schedule": LR_SCHEDULES, "precision": PRECISIONS}
+                                    "lr_schedule": LR_SCHEDULES, "precision": PRECISIONS,
+                                    "free_stretch": FREE_STRETCH_RULES}
     assert _choices_of("quickstart") == {"supervision": SUPERVISION_MODES}
     for verb in ("export", "predict"):
         assert _choices_of(verb)["preset"] == PRESET_NAMES

@@ -161,14 +161,14 @@ def test_free_space_beams_and_unmasked_voxel_losses_train(prepared_synth_root, t
     out = tmp_path / "free"
     assert main(_train_argv(root, out, "--max-steps", "2", "--horizon", "1", "--supervision", "2d+3d",
                             "--free-space", "--free-beyond-grid", "--free-before-point", "--box-line-of-sight",
-                            "--free-rays-per-step", "256", "--head-init", "official")) == 0
+                            "--free-stretch", "points", "--free-rays-per-step", "256", "--head-init", "official")) == 0
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert {"free_space", "free_before", "voxel_density", "render_depth"} <= set(log[0])
     assert log[0]["free_space"] > 0 and log[0]["free_before"] > 0
     assert log[0]["rays_per_s"] > 0 and log[0]["voxels_per_s"] > 0        # what the step supervised, per second
     config = json.loads((out / "train_config.json").read_text())
     assert config["free_space"] and config["free_beyond_grid"] and not config["voxel_mask"]
-    assert config["free_before_point"] and config["box_line_of_sight"]
+    assert config["free_before_point"] and config["box_line_of_sight"] and config["free_stretch"] == "points"
     assert config["head_init"] == "official"
 
 

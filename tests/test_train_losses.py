@@ -259,10 +259,13 @@ def test_3d_labels_alone_run_the_heads_on_the_supervised_voxels_only():
 
 def _ray_batch() -> dict:
     """One sample, two rays from (0, 0, 1) along +x (10 m) and +y (20 m), one free ray along -x; one volume."""
+    from occflownet.data.free_stretch import free_segment_ends
+
     origins = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     return {"images": torch.zeros(1, 6, 2, 2, 3, dtype=torch.uint8), "cam2ego": torch.eye(4).expand(1, 6, 4, 4),
             "ray_origins": origins, "ray_directions": torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
             "ray_depths": torch.tensor([10.0, 20.0]), "ray_labels": torch.tensor([0, 1]),
+            "ray_free_ends": free_segment_ends(torch.tensor([10.0, 20.0])),    # the fraction rule, as the dataset's
             "ray_volume": torch.zeros(2, dtype=torch.long), "volume_source": torch.zeros(1, dtype=torch.long),
             "volume_is_temporal": torch.zeros(1, dtype=torch.bool), "depth_points": [torch.zeros(0, 3)],
             "free_origins": origins[:1], "free_directions": torch.tensor([[-1.0, 0.0, 0.0]]),

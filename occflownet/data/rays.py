@@ -30,6 +30,8 @@ import numpy as np
 
 from occflownet.occ3d import DYNAMIC_FILTER_CLASSES, GRID, map_lidarseg
 from occflownet.data.free_space import FreeSpaceConfig, missing_beams
+from occflownet.choices import FREE_STRETCH_RULES
+from occflownet.data.free_stretch import free_segment_ends, point_clearance_ends
 from occflownet.data.line_of_sight import blocked_by_boxes
 from occflownet.data.records import EgoBoxes
 from occflownet.data.loaders import load_lidar, load_lidarseg
@@ -51,12 +53,16 @@ class RayConfig:
     beyond_grid: bool = False               # camera rays to points beyond the grid become free rays (see free_rays)
     box_line_of_sight: bool = False         # drop rays that pass through an object box before their point
                                             # (data/line_of_sight.py; beyond the paper)
+    free_stretch: str = "fraction"          # where RayBatch.free_ends puts the end of each ray's free stretch
+                                            # (data/free_stretch.py FREE_STRETCH_RULES; beyond the paper)
 
     def __post_init__(self):
         if self.horizon < 0:
             raise ValueError(f"horizon must be >= 0, got {self.horizon}")
         if self.min_depth <= 0:
             raise ValueError(f"min_depth must be > 0, got {self.min_depth}")
+        if self.free_stretch not in FREE_STRETCH_RULES:
+            raise ValueError(f"free_stretch must be one of {FREE_STRETCH_RULES}, got {self.free_stretch!r}")
 
 
 @dataclass(frozen=True)
@@ -70,6 +76,8 @@ class RayBatch:
     time_offsets: np.ndarray  # int8    [R]     t: keyframe offset of the frame the ray comes from (0 = current)
     cameras: np.ndarray       # int8    [R]     camera index in occ3d.CAMERAS order
     pixels: np.ndarray        # float32 [R, 2]  (u, v) pixel centre in that camera's stored image, pixels
+    free_ends: np.ndarray     # float32 [R]     end of the free stretch in front of the point, metres along the ray
+                              #                 (RayConfig.free_stretch; used by --free-before-point)
 
     def __len__(self) -> int:
         return len(self.depths)
@@ -206,7 +214,7 @@ class RayBuilder:
         self.config = config
         self.cache_size = cache_size
         self._cache: OrderedDict[int, FrameHits] = OrderedDict()
-        self._sight: OrderedDict[tuple, object] = OrderedDict()   # line-of-sight masks (box_line_of_sight)
+        self._sight: OrderedDict[tuple, object] = OrderedDict()   # line-of-sight masks, free-stretch ends
 
     def frame(self, position: int) -> FrameHits:
         """The (cached) global-frame hits of keyframe ``position``."""
@@ -239,10 +247,17 @@ class RayBuilder:
                 seen = self._cached(("rays", position, j), lambda: ~blocked_by_boxes(
                     origins, directions, f.depths[keep], self.sight_boxes(position, j)))
                 keep, cams, origins, directions = keep[seen], cams[seen], origins[seen], directions[seen]
+            depths = f.depths[keep]
+            if self.config.free_stretch == "points":
+                free_ends = self._cached(("ends", position, j), lambda: point_clearance_ends(
+                    origins, directions, depths, points))
+            else:
+                free_ends = free_segment_ends(depths)
             parts.append(RayBatch(
                 origins=origins.astype(np.float32), directions=directions.astype(np.float32),
-                depths=f.depths[keep].astype(np.float32), labels=f.labels[keep],
+                depths=depths.astype(np.float32), labels=f.labels[keep],
                 time_offsets=np.full(len(cams), t, dtype=np.int8), cameras=cams, pixels=f.pixels[keep],
+                free_ends=free_ends.astype(np.float32),
             ))
         return RayBatch.concatenate(parts)
 
@@ -268,11 +283,11 @@ class RayBuilder:
                         np.concatenate([np.full(len(o), t, dtype=np.int8) for o, _, t in parts]))
 
     def _cached(self, key, compute):
-        """``compute()``, remembered under ``key`` for the last few keyframes (line-of-sight masks are fixed per
-        keyframe pair and cost tens of ms a frame to recompute)."""
+        """``compute()``, remembered under ``key`` for the last few keyframes (line-of-sight masks and free-stretch
+        ends are fixed per keyframe pair and cost tens of ms a frame to recompute; three kinds of key)."""
         if key not in self._sight:
             self._sight[key] = compute()
-            while len(self._sight) > 2 * (2 * self.config.horizon + 1) * max(self.cache_size, 1):
+            while len(self._sight) > 3 * (2 * self.config.horizon + 1) * max(self.cache_size, 1):
                 self._sight.popitem(last=False)
         self._sight.move_to_end(key)
         return self._sight[key]
@@ -319,21 +334,6 @@ def endpoint_classes(rays: RayBatch, semantics: np.ndarray) -> np.ndarray:
     out = np.full(len(rays), 255, dtype=np.uint8)
     out[inside] = semantics[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
     return out
-
-
-# The free stretch in front of a ray's point (``free_segment_ends``; beyond the paper, docs/data.md): up to
-# (1 - FREE_BEFORE_FRACTION) · depth - FREE_BEFORE_MARGIN metres. A fixed margin is not enough: a ray meeting the
-# road at a shallow angle runs inside the road's 0.4 m voxel layer for metres before its point (55 % of the rays
-# cross a labelled voxel before depth - 0.6 m on the fitting world, 4-5 % before this end).
-FREE_BEFORE_FRACTION = 0.2
-FREE_BEFORE_MARGIN = 0.6   # metres
-FREE_BEFORE_MIN = 1.0      # metres: shorter stretches are not used
-
-
-def free_segment_ends(depths):
-    """Where the free stretch in front of each ray's point ends, metres along the ray (numpy array or tensor [R]);
-    compare with ``FREE_BEFORE_MIN`` to keep only the rays that have one."""
-    return depths * (1.0 - FREE_BEFORE_FRACTION) - FREE_BEFORE_MARGIN
 
 
 def sample_rays(rays: RayBatch, num: int, rng: np.random.Generator) -> RayBatch:

@@ -55,7 +55,8 @@ class TrainingSamples(Dataset):
         # With occupancy flow, dynamic rays of temporal frames are kept and rendered through the warped volume.
         ray_cfg = RayConfig(horizon=cfg.horizon, dynamic_filter=cfg.dynamic_filter and not cfg.flow,
                             free_space=FreeSpaceConfig() if cfg.free_space else None,
-                            beyond_grid=cfg.free_beyond_grid, box_line_of_sight=cfg.box_line_of_sight)
+                            beyond_grid=cfg.free_beyond_grid, box_line_of_sight=cfg.box_line_of_sight,
+                            free_stretch=cfg.free_stretch)
         self.rays = RayBuilder(index, dataroot, ray_cfg, cache_size=2 * cfg.horizon + 2)
 
     def __len__(self) -> int:
@@ -80,6 +81,7 @@ class TrainingSamples(Dataset):
             item.update({
                 "ray_origins": torch.from_numpy(rays.origins), "ray_directions": torch.from_numpy(rays.directions),
                 "ray_depths": torch.from_numpy(rays.depths), "ray_labels": torch.from_numpy(rays.labels.astype(np.int64)),
+                "ray_free_ends": torch.from_numpy(rays.free_ends),
                 "ray_volume": torch.from_numpy(self._volume_of(rays.time_offsets, frames)), "num_volumes": len(frames),
             })
             if free is not None:
@@ -150,7 +152,7 @@ def collate(items: list[dict]) -> dict:
             out[key] = torch.cat([it[key] for it in items])
     if "ray_origins" in items[0]:
         offsets = np.cumsum([0] + [it["num_volumes"] for it in items[:-1]])
-        for key in ("ray_origins", "ray_directions", "ray_depths", "ray_labels"):
+        for key in ("ray_origins", "ray_directions", "ray_depths", "ray_labels", "ray_free_ends"):
             out[key] = torch.cat([it[key] for it in items])
         out["ray_volume"] = torch.cat([it["ray_volume"] + int(o) for it, o in zip(items, offsets)])
         if any("free_origins" in it for it in items):

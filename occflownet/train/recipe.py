@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-from occflownet.choices import (FLOW_MOVERS, HEAD_INITS, LR_SCHEDULES, PRECISIONS, PRESET_NAMES,
+from occflownet.choices import (FLOW_MOVERS, FREE_STRETCH_RULES, HEAD_INITS, LR_SCHEDULES, PRECISIONS, PRESET_NAMES,
                                 RENDER_SEMANTICS, SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
 from occflownet.options import option
 
@@ -74,6 +74,10 @@ class TrainConfig:
     free_before_point: bool = option(False, "also render the stretch of each ray well in front of its LiDAR point "
                                             "(up to 0.8 depth - 0.6 m) as free; its opacity goes to 0 (beyond the "
                                             "paper)")
+    free_stretch: str = option("fraction", "where --free-before-point's stretch ends: fraction = 0.8 depth - 0.6 m; "
+                                           "points = where the ray first comes within a voxel of a LiDAR point of "
+                                           "its frame, at least that (occflownet/data/free_stretch.py)",
+                               choices=FREE_STRETCH_RULES)
     free_rays_per_step: int = option(2048, "free rays per sample per step (with --free-space/--free-beyond-grid; "
                                            "--free-before-point renders as many of the rays' free stretches)")
     free_space_weight: float = option(1.0, "weight of the free-space term -log(1 - opacity)")
@@ -129,6 +133,8 @@ class TrainConfig:
                              f"{RENDER_SEMANTICS}, got {self.sigma_is!r}, {self.render_semantics!r}")
         if self.render_depth_weight < 0 or self.free_prior_weight < 0 or self.density_logit_clip < 0:
             raise ValueError("render_depth_weight, free_prior_weight and density_logit_clip must be >= 0")
+        if self.free_stretch not in FREE_STRETCH_RULES:
+            raise ValueError(f"free_stretch must be one of {FREE_STRETCH_RULES}, got {self.free_stretch!r}")
         if self.free_rays_per_step < 1 or self.free_space_weight < 0:
             raise ValueError("free_rays_per_step must be >= 1 and free_space_weight >= 0")
 

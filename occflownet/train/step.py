@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import torch
 
-from occflownet.data.rays import FREE_BEFORE_MIN, free_segment_ends
+from occflownet.data.free_stretch import FREE_BEFORE_MIN
 from occflownet.model.presets import ModelConfig
 from occflownet.render.disocclusion import disocclude
 from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
@@ -156,11 +156,11 @@ class LossComputer:
     def _before_opacity(self, volumes: "FrameVolumes", batch: dict, device, generator) -> torch.Tensor:
         """Opacity [S] of the free stretches in front of the points of ``free_rays_per_step`` rays per sample (every
         k-th ray of the batch: the rays are drawn at random and stored sample by sample), each through its ray's
-        volume (``free_segment_ends``)."""
+        volume, up to the batch's "ray_free_ends" (``RayBatch.free_ends``, the rule of ``cfg.free_stretch``)."""
         total = len(batch["ray_depths"])
         n = self.cfg.free_rays_per_step * int(batch["images"].shape[0])
         pick = torch.arange(0, total, max(1, total // n))[:n]
-        ends = free_segment_ends(batch["ray_depths"][pick])
+        ends = batch["ray_free_ends"][pick]
         keep = pick[ends >= FREE_BEFORE_MIN]
         ends = ends[ends >= FREE_BEFORE_MIN]
         out = render_rays(*volumes.grids, batch["ray_origins"][keep].to(device),
