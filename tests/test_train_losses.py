@@ -272,6 +272,25 @@ def _ray_batch() -> dict:
             "free_volume": torch.zeros(1, dtype=torch.long)}
 
 
+def test_free_rays_render_up_to_their_ends_when_the_batch_has_them():
+    """With ``free_stretch="points"`` the dataset gives each free ray its end ("free_ends"): the free ray along -x
+    ends at 5 m (optical depth 0.05 · (5 - near)); one shorter than FREE_BEFORE_MIN is left out; without the field
+    it runs to the grid's exit (the σ = 0.05 case of the test below)."""
+    from occflownet.occ3d import GRID
+
+    losses = _computer(free_space=True, free_before_point=True, free_rays_per_step=2, horizon=0)
+    d = losses.depth_bins.numel()
+    outputs = {"density": torch.full((1, *GRID.shape), 0.05), "logits": torch.zeros(1, *GRID.shape, NUM_CLASSES),
+               "depth_prob": torch.full((1, 6, d, 2, 2), 1.0 / d),
+               "feature_intrinsics": torch.eye(3).expand(1, 6, 3, 3)}
+    batch = _ray_batch()
+    for key in ("free_origins", "free_directions", "free_volume"):
+        batch[key] = torch.cat([batch[key], batch[key]])
+    batch["free_ends"] = torch.tensor([5.0, 0.5])
+    terms = losses(outputs, batch, torch.device("cpu"), torch.Generator().manual_seed(0))
+    assert float(terms["free_space"]) == pytest.approx(0.05 * (5.0 - 0.05), rel=3e-3)
+
+
 @pytest.mark.parametrize("sigma", [0.0, 0.05])
 def test_the_loss_computer_renders_the_rays_of_its_terms(sigma):
     from occflownet.occ3d import GRID

@@ -10,9 +10,11 @@ Two rules (``occflownet.choices.FREE_STRETCH_RULES``; ``RayConfig.free_stretch``
   and that is where a 2D-trained model puts its fog (docs/ablation.md).
 - ``"points"`` (:func:`point_clearance_ends`): up to where the ray first enters a voxel within one voxel of a LiDAR
   point of its own frame (the 3 × 3 × 3 neighbourhood of a voxel holding a point: the trilinear lookup of a sample
-  outside those voxels reads no voxel that holds a point), and never shorter than the fraction rule. The points
-  themselves say where surfaces are: head-on, the stretch runs to about a voxel before the point; grazing a road or
-  a wall, it ends where the ray first comes near the surface's other points.
+  outside those voxels reads no voxel that holds a point). The points themselves say where surfaces are: head-on,
+  the stretch runs to about a voxel before the point; grazing a road or a wall, it ends where the ray first comes
+  near the surface's other points. On the fitting world (t = 0 rays of its 8 keyframes) 0.6 % of these stretches
+  cross a labelled voxel, against 7.2 % of the fraction rule's, at about the same mean length (0.69 against 0.70
+  of the depth); the rule also bounds the beyond-grid free rays (``RayBuilder.free_rays``).
 
 Rays whose stretch is shorter than ``FREE_BEFORE_MIN`` are not rendered as free.
 """
@@ -51,8 +53,9 @@ def point_clearance_ends(origins: np.ndarray, directions: np.ndarray, depths: np
                          grid: Grid = GRID) -> np.ndarray:
     """The points rule → float32 [R]: for rays ``origins + s · directions`` (float [R, 3], unit directions, the
     grid's frame), 0 ≤ s ≤ ``depths`` [R], the distance s where each ray enters the first voxel of
-    :func:`near_point_voxels` (``points``: the LiDAR points of the rays' frame, same frame), at least the fraction
-    rule's end; ``depths`` where the ray meets none of them before its point."""
+    :func:`near_point_voxels` (``points``: the LiDAR points of the rays' frame, same frame; 0 for a ray that starts
+    in one); ``depths`` where the ray meets none of them before its point (a ray to a point beyond the grid that
+    leaves it without coming near a point: its depth)."""
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     depths = np.asarray(depths, dtype=np.float64).reshape(-1)
@@ -70,4 +73,4 @@ def point_clearance_ends(origins: np.ndarray, directions: np.ndarray, depths: np
             t1, t2 = (lo - os_) / ds, (lo + grid.voxel_size - os_) / ds
         near_t = np.where(ds == 0, -np.inf, np.minimum(t1, t2))
         ends[stopped] = np.clip(near_t.max(axis=1), 0.0, depths[stopped])
-    return np.maximum(ends, free_segment_ends(depths)).astype(np.float32)
+    return ends.astype(np.float32)

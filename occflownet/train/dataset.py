@@ -88,6 +88,8 @@ class TrainingSamples(Dataset):
                 item.update({"free_origins": torch.from_numpy(free.origins),
                              "free_directions": torch.from_numpy(free.directions),
                              "free_volume": torch.from_numpy(self._volume_of(free.time_offsets, frames))})
+                if self.cfg.free_stretch == "points":    # (the fraction rule renders them to the grid's exit)
+                    item["free_ends"] = torch.from_numpy(free.ends)
             if self.cfg.flow:
                 record = self.flow_records.get(sample.token)
                 if record is None:
@@ -160,6 +162,8 @@ def collate(items: list[dict]) -> dict:
             out["free_origins"] = torch.cat([it["free_origins"] for it, _ in with_free])
             out["free_directions"] = torch.cat([it["free_directions"] for it, _ in with_free])
             out["free_volume"] = torch.cat([it["free_volume"] + int(o) for it, o in with_free])
+            if "free_ends" in items[0]:
+                out["free_ends"] = torch.cat([it["free_ends"] for it, _ in with_free])
         out["volume_source"] = torch.cat([torch.full((it["num_volumes"],), b, dtype=torch.long)
                                           for b, it in enumerate(items)])
         out["volume_is_temporal"] = torch.cat([torch.arange(it["num_volumes"]) > 0 for it in items])
