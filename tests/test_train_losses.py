@@ -272,13 +272,14 @@ def _ray_batch() -> dict:
             "free_volume": torch.zeros(1, dtype=torch.long)}
 
 
-def test_free_rays_render_up_to_their_ends_when_the_batch_has_them():
-    """With ``free_stretch="points"`` the dataset gives each free ray its end ("free_ends"): the free ray along -x
-    ends at 5 m (optical depth 0.05 · (5 - near)); one shorter than FREE_BEFORE_MIN is left out; without the field
-    it runs to the grid's exit (the σ = 0.05 case of the test below)."""
+def test_free_rays_leave_out_the_masked_voxels_when_the_batch_has_masks():
+    """With ``free_stretch="points"`` the dataset gives each free ray a mask of its frame ("free_masks", "free_slot",
+    "slot_volume"): the free ray along -x renders through σ = 0.05 /m except where its mask is set. Masking
+    -20 m ≤ x < 0 leaves the optical depth 0.05 · 19.6 (-20 to -40 m; trilinear σ fades over half a voxel at the
+    mask's edge and at the grid's); the unmasked ray of the same batch still sees 40 m of it."""
     from occflownet.occ3d import GRID
 
-    losses = _computer(free_space=True, free_before_point=True, free_rays_per_step=2, horizon=0)
+    losses = _computer(free_space=True, free_rays_per_step=2, horizon=0)
     d = losses.depth_bins.numel()
     outputs = {"density": torch.full((1, *GRID.shape), 0.05), "logits": torch.zeros(1, *GRID.shape, NUM_CLASSES),
                "depth_prob": torch.full((1, 6, d, 2, 2), 1.0 / d),
@@ -286,9 +287,13 @@ def test_free_rays_render_up_to_their_ends_when_the_batch_has_them():
     batch = _ray_batch()
     for key in ("free_origins", "free_directions", "free_volume"):
         batch[key] = torch.cat([batch[key], batch[key]])
-    batch["free_ends"] = torch.tensor([5.0, 0.5])
-    terms = losses(outputs, batch, torch.device("cpu"), torch.Generator().manual_seed(0))
-    assert float(terms["free_space"]) == pytest.approx(0.05 * (5.0 - 0.05), rel=3e-3)
+    masks = torch.zeros(2, *GRID.shape, dtype=torch.bool)
+    masks[0, 50:100] = True                                              # -20 m <= x < 0
+    batch.update(free_masks=masks, free_slot=torch.tensor([0, 1]), slot_volume=torch.tensor([0, 0]))
+    opacity = losses.inputs(outputs, batch, torch.device("cpu"), torch.Generator().manual_seed(0))["free_opacity"]
+    optical = -torch.log1p(-opacity)
+    assert float(optical[0]) == pytest.approx(0.05 * 19.6, rel=0.02)
+    assert float(optical[1]) == pytest.approx(0.05 * (40.0 - 0.05), rel=3e-3)
 
 
 @pytest.mark.parametrize("sigma", [0.0, 0.05])

@@ -31,7 +31,7 @@ import numpy as np
 from occflownet.occ3d import DYNAMIC_FILTER_CLASSES, GRID, map_lidarseg
 from occflownet.data.free_space import FreeSpaceConfig, missing_beams
 from occflownet.choices import FREE_STRETCH_RULES
-from occflownet.data.free_stretch import free_segment_ends, point_clearance_ends
+from occflownet.data.free_stretch import free_segment_ends, near_point_voxels, point_clearance_ends
 from occflownet.data.line_of_sight import blocked_by_boxes
 from occflownet.data.records import EgoBoxes
 from occflownet.data.loaders import load_lidar, load_lidarseg
@@ -54,7 +54,8 @@ class RayConfig:
     box_line_of_sight: bool = False         # drop rays that pass through an object box before their point
                                             # (data/line_of_sight.py; beyond the paper)
     free_stretch: str = "fraction"          # where RayBatch.free_ends puts the end of each ray's free stretch
-                                            # (data/free_stretch.py FREE_STRETCH_RULES; beyond the paper)
+                                            # (data/free_stretch.py; beyond the paper; "points" also makes the
+                                            # free rays leave out the voxels near points, RayBuilder.near_points)
 
     def __post_init__(self):
         if self.horizon < 0:
@@ -164,8 +165,6 @@ class FreeRays:
     origins: np.ndarray       # float32 [F, 3]  LiDAR or camera centre of the frame the ray comes from
     directions: np.ndarray    # float32 [F, 3]  unit
     time_offsets: np.ndarray  # int8    [F]     keyframe offset t of that frame
-    ends: np.ndarray          # float32 [F]     where the free stretch ends, metres along the ray (inf: it runs on
-                              #                 out of the grid; RayConfig.free_stretch)
 
     def __len__(self) -> int:
         return len(self.time_offsets)
@@ -216,7 +215,7 @@ class RayBuilder:
         self.config = config
         self.cache_size = cache_size
         self._cache: OrderedDict[int, FrameHits] = OrderedDict()
-        self._sight: OrderedDict[tuple, object] = OrderedDict()   # line-of-sight masks, free-stretch ends
+        self._sight: OrderedDict[tuple, object] = OrderedDict()   # line-of-sight masks, free-stretch ends, near-point masks
 
     def frame(self, position: int) -> FrameHits:
         """The (cached) global-frame hits of keyframe ``position``."""
@@ -265,40 +264,37 @@ class RayBuilder:
 
     def free_rays(self, position: int) -> FreeRays:
         """The free-space rays of keyframe ``position`` and its neighbours t ∈ [-O, O], current ego frame: the
-        free-space beams (when ``RayConfig.free_space`` is set) and the beyond-grid rays (when ``beyond_grid``).
-        With ``free_stretch="points"`` a beyond-grid ray is free only up to where it first comes within a voxel of
-        a LiDAR point of its frame (``point_clearance_ends``: on the fitting world 19 % of them cross a labelled
-        voxel inside the grid, mostly the tops of trees, trucks and buses grazed on the way up; 0.5 % up to there)."""
+        free-space beams (when ``RayConfig.free_space`` is set) and the beyond-grid rays (when ``beyond_grid``)."""
         to_current = invert(self.index.arrays["lidar_ego2global"][position])
         parts = []
         for t, j in self.index.neighbours(position, self.config.horizon):
             f = self.frame(j)
             origin = transform_points(to_current, f.lidar_origin[None])
-            n_beams = len(f.free_directions)
-            beams = f.free_directions @ to_current[:3, :3].T
-            frame_parts = [(np.repeat(origin, n_beams, 0), beams, np.full(n_beams, np.inf))]
+            frame_parts = [(np.repeat(origin, len(f.free_directions), 0), f.free_directions @ to_current[:3, :3].T, t)]
             if self.config.beyond_grid:
-                o, d, depths = self._beyond_grid(f, to_current)
-                if self.config.free_stretch == "points":
-                    points = transform_points(to_current, f.points)
-                    ends = self._cached(("beyond", position, j), lambda: point_clearance_ends(o, d, depths, points))
-                else:
-                    ends = np.full(len(o), np.inf)
-                frame_parts.append((o, d, ends))
+                frame_parts.append(self._beyond_grid(f, to_current, t))
             if self.config.box_line_of_sight:
                 seen = self._cached(("free", position, j), lambda: [
                     ~blocked_by_boxes(o, d, np.full(len(o), np.inf), self.sight_boxes(position, j))
                     for o, d, _ in frame_parts])
-                frame_parts = [(o[k], d[k], e[k]) for (o, d, e), k in zip(frame_parts, seen)]
-            parts.extend((o, d, e, t) for o, d, e in frame_parts)
-        return FreeRays(np.concatenate([o for o, _, _, _ in parts]).astype(np.float32),
-                        np.concatenate([d for _, d, _, _ in parts]).astype(np.float32),
-                        np.concatenate([np.full(len(o), t, dtype=np.int8) for o, _, _, t in parts]),
-                        np.concatenate([e for _, _, e, _ in parts]).astype(np.float32))
+                frame_parts = [(o[k], d[k], t) for (o, d, t), k in zip(frame_parts, seen)]
+            parts.extend(frame_parts)
+        return FreeRays(np.concatenate([o for o, _, _ in parts]).astype(np.float32),
+                        np.concatenate([d for _, d, _ in parts]).astype(np.float32),
+                        np.concatenate([np.full(len(o), t, dtype=np.int8) for o, _, t in parts]))
+
+    def near_points(self, position: int, j: int) -> np.ndarray:
+        """bool [X, Y, Z]: the voxels of the current ego frame of keyframe ``position`` within one voxel of a LiDAR
+        point of keyframe ``j`` (``free_stretch.near_point_voxels``; with ``free_stretch="points"`` the free rays
+        of frame j leave them out: the tops of trees and vehicles that a ray to a point beyond the grid grazes)."""
+        def compute():
+            to_current = invert(self.index.arrays["lidar_ego2global"][position])
+            return near_point_voxels(transform_points(to_current, self.frame(j).points))
+        return self._cached(("near", position, j), compute)
 
     def _cached(self, key, compute):
-        """``compute()``, remembered under ``key`` for the last few keyframes (line-of-sight masks and free-stretch
-        ends are fixed per keyframe pair and cost tens of ms a frame to recompute; four kinds of key)."""
+        """``compute()``, remembered under ``key`` for the last few keyframes (line-of-sight masks, free-stretch
+        ends and near-point masks are fixed per keyframe pair and cost tens of ms a frame to recompute; four kinds of key)."""
         if key not in self._sight:
             self._sight[key] = compute()
             while len(self._sight) > 4 * (2 * self.config.horizon + 1) * max(self.cache_size, 1):
@@ -319,16 +315,15 @@ class RayBuilder:
         return boxes.take(near)
 
     @staticmethod
-    def _beyond_grid(f: FrameHits, to_current: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _beyond_grid(f: FrameHits, to_current: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray, int]:
         """Beyond-grid rays of one frame (beyond the paper; docs/ablation.md): its camera rays whose LiDAR point
         lies outside the grid of the current ego frame, from cameras inside it. The grid is convex, so such a ray
         leaves it before reaching the point and never comes back: every voxel it crosses is free (at time t).
         Training rays end inside the grid (as the official code filters them), so without these the free space in
-        front of distant or tall surfaces gets no supervision. → (origins [K, 3], directions [K, 3], depths [K]: the
-        distance to the point)."""
+        front of distant or tall surfaces gets no supervision. → (origins [K, 3], directions [K, 3], t)."""
         centers = transform_points(to_current, f.centers)
         keep = ~GRID.contains(transform_points(to_current, f.points)) & GRID.contains(centers)[f.cameras]
-        return centers[f.cameras[keep]], f.directions[keep] @ to_current[:3, :3].T, f.depths[keep]
+        return centers[f.cameras[keep]], f.directions[keep] @ to_current[:3, :3].T, t
 
     def visible_point_labels(self, position: int) -> np.ndarray:
         """uint8 [P]: Occ3D labels of the distinct LiDAR points of keyframe ``position`` inside the grid that

@@ -88,8 +88,8 @@ class TrainingSamples(Dataset):
                 item.update({"free_origins": torch.from_numpy(free.origins),
                              "free_directions": torch.from_numpy(free.directions),
                              "free_volume": torch.from_numpy(self._volume_of(free.time_offsets, frames))})
-                if self.cfg.free_stretch == "points":    # (the fraction rule renders them to the grid's exit)
-                    item["free_ends"] = torch.from_numpy(free.ends)
+                if self.cfg.free_stretch == "points":
+                    item.update(self._near_points(position, free, frames))
             if self.cfg.flow:
                 record = self.flow_records.get(sample.token)
                 if record is None:
@@ -127,6 +127,18 @@ class TrainingSamples(Dataset):
         return free.take(rng.choice(len(free), size=self.cfg.free_rays_per_step,
                                     replace=len(free) < self.cfg.free_rays_per_step))
 
+    def _near_points(self, position: int, free, frames: list[int]) -> dict:
+        """The voxels the free rays of each of their frames leave out (``free_stretch="points"``): "free_masks" bool
+        [T, X, Y, Z] (``RayBuilder.near_points`` of the T frames the free rays come from, in order of t),
+        "free_slot" long [F] (the mask of each free ray), "slot_volume" long [T] (the volume each mask applies to,
+        as ``free_volume``)."""
+        frame_of = dict(self.index.neighbours(position, self.cfg.horizon))
+        offsets = sorted(set(int(t) for t in free.time_offsets))
+        return {"free_masks": torch.from_numpy(np.stack([self.rays.near_points(position, frame_of[t])
+                                                         for t in offsets])),
+                "free_slot": torch.from_numpy(np.searchsorted(offsets, free.time_offsets.astype(np.int64))),
+                "slot_volume": torch.from_numpy(self._volume_of(np.asarray(offsets, np.int8), frames))}
+
     def _depth_points(self, position: int, rng: np.random.Generator) -> np.ndarray:
         """float32 [N, 3]: the keyframe's LiDAR points (t = 0) in the current ego frame, for the LSS depth loss."""
         frame = self.rays.frame(position)
@@ -162,8 +174,11 @@ def collate(items: list[dict]) -> dict:
             out["free_origins"] = torch.cat([it["free_origins"] for it, _ in with_free])
             out["free_directions"] = torch.cat([it["free_directions"] for it, _ in with_free])
             out["free_volume"] = torch.cat([it["free_volume"] + int(o) for it, o in with_free])
-            if "free_ends" in items[0]:
-                out["free_ends"] = torch.cat([it["free_ends"] for it, _ in with_free])
+            if "free_masks" in items[0]:
+                slots = np.cumsum([0] + [len(it["free_masks"]) for it, _ in with_free[:-1]])
+                out["free_masks"] = torch.cat([it["free_masks"] for it, _ in with_free])
+                out["free_slot"] = torch.cat([it["free_slot"] + int(s) for (it, _), s in zip(with_free, slots)])
+                out["slot_volume"] = torch.cat([it["slot_volume"] + int(o) for it, o in with_free])
         out["volume_source"] = torch.cat([torch.full((it["num_volumes"],), b, dtype=torch.long)
                                           for b, it in enumerate(items)])
         out["volume_is_temporal"] = torch.cat([torch.arange(it["num_volumes"]) > 0 for it in items])

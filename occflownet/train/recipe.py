@@ -76,8 +76,8 @@ class TrainConfig:
                                             "paper)")
     free_stretch: str = option("fraction", "where --free-before-point's stretch ends: fraction = 0.8 depth - 0.6 m; "
                                            "points = where the ray first comes within a voxel of a LiDAR point of "
-                                           "its frame, which also bounds --free-beyond-grid's rays "
-                                           "(occflownet/data/free_stretch.py)",
+                                           "its frame; with it the free rays leave out the voxels within a voxel "
+                                           "of a point (occflownet/data/free_stretch.py)",
                                choices=FREE_STRETCH_RULES)
     free_rays_per_step: int = option(2048, "free rays per sample per step (with --free-space/--free-beyond-grid; "
                                            "--free-before-point renders as many of the rays' free stretches)")

@@ -146,20 +146,20 @@ class LossComputer:
 
     def _free_opacity(self, volumes: "FrameVolumes", batch: dict, device, generator) -> torch.Tensor:
         """Opacity [F] of the batch's free rays (free-space beams, camera rays beyond the grid) through their
-        volumes, each up to its "free_ends" when the batch has them (``free_stretch="points"``; rays with less than
-        ``FREE_BEFORE_MIN`` of free stretch left out), else to the renderer's far end; [0] when no sample of the
-        batch found any (the dataset then leaves the free_* fields out)."""
+        volumes; with "free_masks" in the batch (``free_stretch="points"``) through copies of them with the voxels
+        near a LiDAR point of the ray's frame at σ = 0 ([T, X, Y, Z], one per frame, ``slot_volume`` the volume
+        each copies). [0] when no sample of the batch found any (the dataset then leaves the free_* fields out)."""
         if "free_origins" not in batch:
             return torch.zeros(0, device=device)
-        keep, far = slice(None), None
-        if "free_ends" in batch:
-            ends = batch["free_ends"].clamp(max=self.render_cfg.far)
-            keep = torch.nonzero(ends >= FREE_BEFORE_MIN).reshape(-1)
-            far = ends[keep].to(device)
-        return render_rays(*volumes.grids, batch["free_origins"][keep].to(device),
-                           batch["free_directions"][keep].to(device), self.render_cfg, generator=generator,
-                           batch_index=batch["free_volume"][keep].to(device), far=far,
-                           logits_index=volumes.logits_index).weight_sum
+        density, ray_volume, logits_index = volumes.density, batch["free_volume"].to(device), volumes.logits_index
+        if "free_masks" in batch:
+            slot_volume = batch["slot_volume"].to(device)
+            density = density[slot_volume].masked_fill(batch["free_masks"].to(device), 0.0)
+            ray_volume = batch["free_slot"].to(device)
+            logits_index = slot_volume if logits_index is None else logits_index[slot_volume]
+        return render_rays(density, volumes.logits, batch["free_origins"].to(device),
+                           batch["free_directions"].to(device), self.render_cfg, generator=generator,
+                           batch_index=ray_volume, logits_index=logits_index).weight_sum
 
     def _before_opacity(self, volumes: "FrameVolumes", batch: dict, device, generator) -> torch.Tensor:
         """Opacity [S] of the free stretches in front of the points of ``free_rays_per_step`` rays per sample (every
