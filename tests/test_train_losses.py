@@ -320,6 +320,27 @@ def test_the_loss_computer_renders_the_rays_of_its_terms(sigma):
         assert terms["free_before"] == pytest.approx(np.mean(stretches), rel=3e-3)
 
 
+def test_density_grad_floor_renders_the_sigmoid_and_keeps_a_gradient():
+    """--density-grad-floor M: σ = sigmoid(logit) exactly, and the logit's gradient is at least sigmoid'(M)."""
+    from occflownet.train.step import SigmoidGradientFloor
+
+    z = torch.tensor([-20.0, 0.5, 9.0], requires_grad=True)
+    sigma = SigmoidGradientFloor.apply(z, 6.0)
+    assert torch.equal(sigma.detach(), torch.sigmoid(z.detach()))
+    sigma.sum().backward()
+    expected = [torch.sigmoid(torch.tensor(v)) * (1 - torch.sigmoid(torch.tensor(v))) for v in (-6.0, 0.5, 6.0)]
+    assert z.grad.tolist() == pytest.approx([float(e) for e in expected])
+    losses = _computer(density_grad_floor=6.0)
+    logit = torch.tensor([-20.0, 0.0]).view(1, 2, 1, 1)
+    outputs = {"density": torch.sigmoid(logit), "density_logit": logit}
+    assert torch.equal(losses.render_density(outputs["density"], outputs), outputs["density"])
+    both = _computer(density_grad_floor=4.0, density_logit_clip=6.0)     # clamped at 6, gradient floor at 4
+    logit = torch.tensor([-20.0, -5.0]).view(1, 2, 1, 1).requires_grad_()
+    both.render_density(None, {"density_logit": logit}).sum().backward()
+    assert logit.grad.flatten().tolist() == pytest.approx([float(torch.sigmoid(torch.tensor(-4.0)) *
+                                                                 torch.sigmoid(torch.tensor(4.0)))] * 2)
+
+
 def test_density_logit_clip_renders_at_the_edge_and_keeps_the_gradient():
     """--density-logit-clip M: a voxel whose logit ran to -20 renders as σ = sigmoid(-M) and its logit still gets
     the gradient sigmoid'(-M) (straight through the clamp), where sigmoid'(-20) ≈ 2e-9 would leave it stuck."""

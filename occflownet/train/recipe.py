@@ -60,6 +60,10 @@ class TrainConfig:
     density_logit_clip: float = option(0.0, "rendering reads sigma = sigmoid(clamp(logit, -M, M)) with the "
                                              "gradient passed straight through the clamp, so that a voxel whose "
                                              "logit ran far out still learns (0: off, official; beyond the paper)")
+    density_grad_floor: float = option(0.0, "rendering reads sigma = sigmoid(logit) exactly, but passes back at "
+                                            "least the gradient of the sigmoid at -M (+M above): a voxel whose logit "
+                                            "ran deep into saturation early can still be pulled back (0: off, "
+                                            "official; beyond the paper)")
     voxel_mask: bool = option(False, "3D voxel losses only inside mask_camera (off: every voxel, as the official "
                                      "code)")
     head_init: str = option("", "σ/semantic head init: prior (σ ≈ 0.1 at the start) or official (Xavier, zero "
@@ -132,8 +136,9 @@ class TrainConfig:
         if self.sigma_is not in SIGMA_READINGS or self.render_semantics not in RENDER_SEMANTICS:
             raise ValueError(f"sigma_is must be one of {SIGMA_READINGS} and render_semantics one of "
                              f"{RENDER_SEMANTICS}, got {self.sigma_is!r}, {self.render_semantics!r}")
-        if self.render_depth_weight < 0 or self.free_prior_weight < 0 or self.density_logit_clip < 0:
-            raise ValueError("render_depth_weight, free_prior_weight and density_logit_clip must be >= 0")
+        if min(self.render_depth_weight, self.free_prior_weight, self.density_logit_clip, self.density_grad_floor) < 0:
+            raise ValueError("render_depth_weight, free_prior_weight, density_logit_clip and density_grad_floor must "
+                             "be >= 0")
         if self.free_stretch not in FREE_STRETCH_RULES:
             raise ValueError(f"free_stretch must be one of {FREE_STRETCH_RULES}, got {self.free_stretch!r}")
         if self.free_rays_per_step < 1 or self.free_space_weight < 0:

@@ -95,13 +95,17 @@ class LossComputer:
         return found
 
     def render_density(self, density: torch.Tensor, outputs: dict) -> torch.Tensor:
-        """σ [B, X, Y, Z] as rendering reads it: ``density`` (the model's, as float32), or with
-        ``density_logit_clip`` M > 0 sigmoid(clamp(logit, -M, M)) whose gradient passes the clamp straight through
-        (:func:`straight_clamp`)."""
-        m = self.cfg.density_logit_clip
-        if m <= 0:
+        """σ [B, X, Y, Z] as rendering reads it: ``density`` (the model's, as float32); with ``density_logit_clip``
+        M > 0 sigmoid(clamp(logit, -M, M)) whose gradient passes the clamp straight through (:func:`straight_clamp`);
+        with ``density_grad_floor`` M > 0 the model's σ whose gradient is at least the sigmoid's at ±M
+        (:class:`SigmoidGradientFloor`); with both, the clamped σ with the floor of the smaller M."""
+        clip, floor = self.cfg.density_logit_clip, self.cfg.density_grad_floor
+        if clip <= 0 and floor <= 0:
             return density
-        return torch.sigmoid(straight_clamp(outputs["density_logit"].float(), m))
+        logit = outputs["density_logit"].float()
+        if clip > 0:
+            logit = straight_clamp(logit, clip)
+        return SigmoidGradientFloor.apply(logit, floor) if floor > 0 else torch.sigmoid(logit)
 
     @staticmethod
     def _at_rows(values: torch.Tensor, rows: torch.Tensor | None, given: bool, device) -> torch.Tensor:
@@ -183,6 +187,25 @@ def straight_clamp(x: torch.Tensor, bound: float) -> torch.Tensor:
     logit far out of that range renders as at its edge and keeps the sigmoid's gradient there (σ(1 - σ) ≈ 0.0025
     at 6) instead of the vanishing one at the logit itself (≈ 3e-7 at -15)."""
     return x + (x.clamp(-bound, bound) - x).detach()
+
+
+class SigmoidGradientFloor(torch.autograd.Function):
+    """``apply(logit, M)`` → sigmoid(logit), exactly; backward: the gradient times σ'(clamp(logit, -M, M)), i.e. at
+    least σ'(M) (≈ 0.0025 at 6) however far the logit ran out, where the true σ'(-20) ≈ 2e-9 leaves a voxel that
+    the free rays carved early stuck as free. Unlike :func:`straight_clamp` nothing renders differently: a far-out
+    logit still renders σ ≈ 0 (no density floor for the free terms to fight), it only keeps a live gradient."""
+
+    @staticmethod
+    def forward(ctx, logit, bound):
+        ctx.save_for_backward(logit)
+        ctx.bound = float(bound)
+        return torch.sigmoid(logit)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (logit,) = ctx.saved_tensors
+        s = torch.sigmoid(logit.clamp(-ctx.bound, ctx.bound))
+        return grad * s * (1 - s), None
 
 
 @dataclass(frozen=True)
