@@ -100,6 +100,67 @@ def light_profile(model, root, index, position: int, classes=(15, 16, 11, 4, 10,
     return lines
 
 
+def collect(model, samples) -> dict:
+    """Over every keyframe of ``samples``, inside ``mask_camera``: the confusion [18, 18] (labels × predictions,
+    17 = free), the false positives' distances, sides, gaps and fronted classes, σ at labelled-occupied and
+    labelled-free voxels."""
+    tau = model.cfg.threshold
+    found = {"confusion": np.zeros((FREE + 1, FREE + 1), dtype=np.int64), "distances": [], "sides": [], "gaps": [],
+             "fronted": [], "sigma_occupied": [], "sigma_free": []}
+    for position in samples.positions:
+        record = samples.index[int(position)]
+        density, logits = predict(model, samples.dataroot, record)
+        sigma, classes = density.numpy(), logits.argmax(-1).numpy()
+        occ = load_occupancy(samples.dataroot, record.occupancy_path)
+        labels, mask = occ.semantics.astype(np.int64), occ.mask_camera.astype(bool)
+        predicted = np.where(sigma >= tau, classes, FREE)
+        found["confusion"] += np.bincount(labels[mask] * (FREE + 1) + predicted[mask],
+                                          minlength=(FREE + 1) ** 2).reshape(FREE + 1, FREE + 1)
+        occupied = labels != FREE
+        false_pos = mask & ~occupied & (predicted != FREE)
+        found["distances"].append(ndimage.distance_transform_edt(~occupied)[false_pos])
+        side, gap, surface = radial_side(false_pos, occupied)
+        found["sides"].append(side)
+        found["gaps"].append(gap[side == 0])
+        found["fronted"].append(labels.reshape(-1)[surface[side == 0]])
+        found["sigma_occupied"].append(sigma[mask & occupied])
+        found["sigma_free"].append(sigma[mask & ~occupied])
+    return found
+
+
+def report(found: dict) -> list[str]:
+    """The printed lines of :func:`collect`'s figures (see the module docstring)."""
+    confusion = found["confusion"]
+    lines = []
+    labelled = confusion[:FREE].sum(1)
+    for c in np.flatnonzero(labelled >= 50):
+        row = confusion[c]
+        iou = row[c] / (row.sum() + confusion[:, c].sum() - row[c])
+        top = ", ".join(f"{'free' if j == FREE else CLASS_NAMES[j]} {row[j] / labelled[c]:.2f}"
+                        for j in np.argsort(-row)[:4] if row[j])
+        lines.append(f"  {CLASS_NAMES[c]:20s} labelled {labelled[c]:7d}  IoU {iou:.2f}  predicted free "
+                     f"{row[FREE] / labelled[c]:.2f}  right {row[c] / labelled[c]:.2f}  ({top})")
+    d, side, gap, front_of = (np.concatenate(found[k]) for k in ("distances", "sides", "gaps", "fronted"))
+    lines.append(f"false positives {len(d)}: at distance 1 / 2 / 3 / 4-6 / 7+ voxels from a labelled-occupied voxel: "
+                 + " / ".join(str(int(n)) for n in np.histogram(d, [0, 1.01, 2.01, 3.01, 6.01, np.inf])[0]))
+    lines.append(f"  in front of a labelled surface {int((side == 0).sum())}, behind one {int((side == 1).sum())}, "
+                 f"neither within 15 voxels {int((side == 2).sum())}")
+    if len(gap):
+        ground = np.isin(front_of, GROUND).mean()
+        lines.append(f"  in front: gap / the surface's range, quartiles "
+                     f"{np.percentile(gap, [25, 50, 75]).round(3).tolist()}; in front of ground classes {ground:.2f}, "
+                     f"of others {1 - ground:.2f}")
+        lines += [f"    in front of {CLASS_NAMES[c]}: {n}" for c, n in zip(*np.unique(front_of, return_counts=True))
+                  if n >= 500]
+    so, sf = np.concatenate(found["sigma_occupied"]), np.concatenate(found["sigma_free"])
+    lines.append(f"σ at labelled-occupied voxels, deciles 1/5/9: {np.percentile(so, [10, 50, 90]).round(3).tolist()}; "
+                 f"at labelled-free ones, 50/90/99 %: {np.percentile(sf, [50, 90, 99]).round(3).tolist()}")
+    lines.append("geometry IoU by τ: " + ", ".join(
+        f"{t:g}: {(so >= t).sum() / ((so >= t).sum() + (sf >= t).sum() + (so < t).sum()):.3f}"
+        for t in (0.05, 0.1, 0.2, 0.35, 0.5, 0.7, 0.9)))
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", required=True, help="a training run folder (checkpoints/last.pt)")
@@ -108,56 +169,10 @@ def main() -> None:
     args = ap.parse_args()
     model, _, _ = load_checkpoint(f"{args.run}/checkpoints/last.pt")
     model.eval()
-    tau = model.cfg.threshold
     samples = select_samples(args.world, split="all")
-    confusion = np.zeros((FREE + 1, FREE + 1), dtype=np.int64)
-    distances, sides, gaps, fronted = [], [], [], []
-    sigma_occupied, sigma_free = [], []
-    for position in samples.positions:
-        record = samples.index[int(position)]
-        density, logits = predict(model, samples.dataroot, record)
-        sigma, classes = density.numpy(), logits.argmax(-1).numpy()
-        occ = load_occupancy(samples.dataroot, record.occupancy_path)
-        labels, mask = occ.semantics.astype(np.int64), occ.mask_camera.astype(bool)
-        predicted = np.where(sigma >= tau, classes, FREE)
-        confusion += np.bincount(labels[mask] * (FREE + 1) + predicted[mask],
-                                 minlength=(FREE + 1) ** 2).reshape(FREE + 1, FREE + 1)
-        occupied = labels != FREE
-        false_pos = mask & ~occupied & (predicted != FREE)
-        distances.append(ndimage.distance_transform_edt(~occupied)[false_pos])
-        side, gap, surface = radial_side(false_pos, occupied)
-        sides.append(side)
-        gaps.append(gap[side == 0])
-        fronted.append(labels.reshape(-1)[surface[side == 0]])
-        sigma_occupied.append(sigma[mask & occupied])
-        sigma_free.append(sigma[mask & ~occupied])
-    print(f"{args.run}: τ = {tau}, {len(samples.positions)} keyframes of {args.world}, inside mask_camera")
-    labelled = confusion[:FREE].sum(1)
-    for c in np.flatnonzero(labelled >= 50):
-        row = confusion[c]
-        iou = row[c] / (row.sum() + confusion[:, c].sum() - row[c])
-        top = ", ".join(f"{'free' if j == FREE else CLASS_NAMES[j]} {row[j] / labelled[c]:.2f}"
-                        for j in np.argsort(-row)[:4] if row[j])
-        print(f"  {CLASS_NAMES[c]:20s} labelled {labelled[c]:7d}  IoU {iou:.2f}  predicted free {row[FREE] / labelled[c]:.2f}"
-              f"  right {row[c] / labelled[c]:.2f}  ({top})")
-    d, side, gap, front_of = map(np.concatenate, (distances, sides, gaps, fronted))
-    print(f"false positives {len(d)}: at distance 1 / 2 / 3 / 4-6 / 7+ voxels from a labelled-occupied voxel: "
-          + " / ".join(str(int(n)) for n in np.histogram(d, [0, 1.01, 2.01, 3.01, 6.01, np.inf])[0]))
-    print(f"  in front of a labelled surface {int((side == 0).sum())}, behind one {int((side == 1).sum())}, "
-          f"neither within 15 voxels {int((side == 2).sum())}")
-    if len(gap):
-        print(f"  in front: gap / the surface's range, quartiles {np.percentile(gap, [25, 50, 75]).round(3).tolist()}; "
-              f"in front of ground classes {np.isin(front_of, GROUND).mean():.2f}, of others "
-              f"{1 - np.isin(front_of, GROUND).mean():.2f}")
-        for c, n in zip(*np.unique(front_of, return_counts=True)):
-            if n >= 500:
-                print(f"    in front of {CLASS_NAMES[c]}: {n}")
-    so, sf = np.concatenate(sigma_occupied), np.concatenate(sigma_free)
-    print(f"σ at labelled-occupied voxels, deciles 1/5/9: {np.percentile(so, [10, 50, 90]).round(3).tolist()}; at "
-          f"labelled-free ones, 50/90/99 %: {np.percentile(sf, [50, 90, 99]).round(3).tolist()}")
-    print("geometry IoU by τ: " + ", ".join(
-        f"{t:g}: {(so >= t).sum() / ((so >= t).sum() + (sf >= t).sum() + (so < t).sum()):.3f}"
-        for t in (0.05, 0.1, 0.2, 0.35, 0.5, 0.7, 0.9)))
+    print(f"{args.run}: τ = {model.cfg.threshold}, {len(samples.positions)} keyframes of {args.world}, inside "
+          f"mask_camera")
+    print("\n".join(report(collect(model, samples))))
     print("where the light of the t = 0 training rays stops:")
     index = load_index(args.world)
     for position in (int(k) for k in args.keyframes.split(",")):

@@ -47,6 +47,32 @@ def test_a_flip_is_its_own_inverse(prepared_synth_root):
     assert BevFlip().apply(item) is item
 
 
+def test_the_free_rays_masks_follow_the_flip(prepared_synth_root):
+    """With ``--free-stretch points`` the item holds the voxels near each frame's LiDAR points ("free_masks" [T, X, Y,
+    Z]); flipped, they are still near the (flipped) points of the t = 0 rays, and a flip is its own inverse."""
+    from occflownet.data.index import load_index
+
+    root, _ = prepared_synth_root
+    index = load_index(root)
+    config = TrainConfig(dataroot=str(root), rays_per_step=3000, free_beyond_grid=True, free_stretch="points",
+                         horizon=0)
+    item = TrainingSamples(root, index, index.split_positions("all"), config)[(2, 5)]
+    assert item["free_masks"].shape == (1, *GRID.shape) and set(item["free_slot"].tolist()) == {0}
+
+    def near_share(it):
+        rays = it["ray_volume"] == 0
+        points = (it["ray_origins"] + it["ray_depths"][:, None] * it["ray_directions"])[rays].numpy()
+        ijk = GRID.index_of(points)
+        inside = np.all((ijk >= 0) & (ijk < np.asarray(GRID.shape)), axis=1)
+        return float(it["free_masks"][0].numpy()[tuple(ijk[inside].T)].mean())
+
+    assert near_share(item) > 0.99
+    for flip in FLIPS:
+        flipped = flip.apply(item)
+        assert near_share(flipped) > 0.99 and not torch.equal(flipped["free_masks"], item["free_masks"])
+        assert torch.equal(flip.apply(flipped)["free_masks"], item["free_masks"])
+
+
 def test_flipped_rays_end_in_voxels_of_their_class_as_often_as_unflipped(prepared_synth_root):
     root, _ = prepared_synth_root
     item = _items(root, False)[(2, 5)]

@@ -215,7 +215,7 @@ class RayBuilder:
         self.config = config
         self.cache_size = cache_size
         self._cache: OrderedDict[int, FrameHits] = OrderedDict()
-        self._sight: OrderedDict[tuple, object] = OrderedDict()   # line-of-sight masks, free-stretch ends, near-point masks
+        self._sight: OrderedDict[tuple, object] = OrderedDict()   # sight masks, free-stretch ends, near points
 
     def frame(self, position: int) -> FrameHits:
         """The (cached) global-frame hits of keyframe ``position``."""
@@ -294,7 +294,8 @@ class RayBuilder:
 
     def _cached(self, key, compute):
         """``compute()``, remembered under ``key`` for the last few keyframes (line-of-sight masks, free-stretch
-        ends and near-point masks are fixed per keyframe pair and cost tens of ms a frame to recompute; four kinds of key)."""
+        ends and near-point masks are fixed per keyframe pair and cost tens of ms a frame to recompute; four kinds
+        of key)."""
         if key not in self._sight:
             self._sight[key] = compute()
             while len(self._sight) > 4 * (2 * self.config.horizon + 1) * max(self.cache_size, 1):

@@ -10,8 +10,8 @@ to X - 1 - i.
 
 Fields of an item (``occflownet.train.dataset``; all in the current ego frame) and what a flip does to them:
 ``cam2ego`` [6, 4, 4] → F·cam2ego; ``ray_origins``, ``ray_directions``, ``free_origins``, ``free_directions``
-[R, 3] and ``depth_points`` [P, 3] → their x and/or y negated; ``occ_semantics``, ``occ_mask`` [X, Y, Z] → reversed
-along the flipped axes; ``flow`` (box moves: voxels int [M, 3], transforms [K, 4, 4] ego → ego) → voxel indices
+[R, 3] and ``depth_points`` [P, 3] → their x and/or y negated; ``occ_semantics``, ``occ_mask`` [X, Y, Z] and
+``free_masks`` [T, X, Y, Z] → reversed along the flipped axes; ``flow`` (box moves: voxels int [M, 3], transforms [K, 4, 4] ego → ego) → voxel indices
 mirrored, transforms F·T·F. Depths, labels and everything per ray or per volume are unchanged.
 """
 from __future__ import annotations
@@ -24,7 +24,8 @@ import torch
 from occflownet.occ3d import GRID, Grid
 
 VECTOR_FIELDS = ("ray_origins", "ray_directions", "free_origins", "free_directions", "depth_points")
-GRID_FIELDS = ("occ_semantics", "occ_mask")
+GRID_FIELDS = ("occ_semantics", "occ_mask")       # [X, Y, Z]
+STACKED_GRID_FIELDS = ("free_masks",)             # [T, X, Y, Z]
 
 
 @dataclass(frozen=True)
@@ -64,6 +65,9 @@ class BevFlip:
         for key in GRID_FIELDS:
             if key in item:
                 out[key] = torch.flip(item[key], axes)
+        for key in STACKED_GRID_FIELDS:
+            if key in item:
+                out[key] = torch.flip(item[key], [a + 1 for a in axes])
         if "flow" in item:
             out["flow"] = self._flow(item["flow"], grid)
         return out
