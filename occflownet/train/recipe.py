@@ -75,9 +75,9 @@ class TrainConfig:
     box_line_of_sight: bool = option(False, "drop the rays (and free rays) that pass through an annotated object "
                                             "box before their point: hidden from the camera, or crossing where an "
                                             "object stands at the keyframe (beyond the paper)")
-    free_before_point: bool = option(False, "also render the stretch of each ray well in front of its LiDAR point "
-                                            "(up to 0.8 depth - 0.6 m) as free; its opacity goes to 0 (beyond the "
-                                            "paper)")
+    free_before_point: bool = option(False, "also render the stretch of each ray in front of its LiDAR point (up to "
+                                            "where --free-stretch ends it) as free; its opacity goes to 0 (beyond "
+                                            "the paper)")
     free_stretch: str = option("fraction", "where --free-before-point's stretch ends: fraction = 0.8 depth - 0.6 m; "
                                            "points = where the ray first comes within a voxel of a LiDAR point of "
                                            "its frame; with it the free rays leave out the voxels within a voxel "
