@@ -174,7 +174,7 @@ def collate(items: list[dict]) -> dict:
             out["free_origins"] = torch.cat([it["free_origins"] for it, _ in with_free])
             out["free_directions"] = torch.cat([it["free_directions"] for it, _ in with_free])
             out["free_volume"] = torch.cat([it["free_volume"] + int(o) for it, o in with_free])
-            if "free_masks" in items[0]:
+            if "free_masks" in with_free[0][0]:             # (every item with free rays has them, or none)
                 slots = np.cumsum([0] + [len(it["free_masks"]) for it, _ in with_free[:-1]])
                 out["free_masks"] = torch.cat([it["free_masks"] for it, _ in with_free])
                 out["free_slot"] = torch.cat([it["free_slot"] + int(s) for (it, _), s in zip(with_free, slots)])
