@@ -25,7 +25,7 @@ def test_near_point_voxels_is_the_point_voxels_and_their_26_neighbours():
 def test_head_on_ray_ends_where_it_enters_the_voxel_before_the_point():
     wall = np.array([[10.1, y, z] for y in np.arange(-3.0, 3.0, 0.1) for z in np.arange(-0.5, 3.0, 0.1)])
     origins, directions = np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0]])
-    ends = point_clearance_ends(origins, directions, np.array([10.1]), wall)
+    ends = point_clearance_ends(origins, directions, np.array([10.1]), near_point_voxels(wall))
     # the wall's points lie in x voxel [10.0, 10.4): the voxel before it starts at 9.6 m
     assert ends.dtype == np.float32 and ends[0] == pytest.approx(9.6, abs=1e-5)
     assert ends[0] > free_segment_ends(10.1)                    # the fraction rule stops at 7.48 m
@@ -36,13 +36,14 @@ def test_a_ray_grazing_other_points_ends_where_it_first_comes_near_them():
     # 1.6 m, long before the ray's own point at 20 m (the fraction rule would run on to 15.4 m, along the row)
     row = np.array([[x, 0.0, 0.7] for x in np.arange(2.05, 20.0, 0.1)])
     origins, directions = np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]])
-    ends = point_clearance_ends(origins, directions, np.array([20.0]), np.vstack([row, [[20.0, 0.0, 1.0]]]))
+    ends = point_clearance_ends(origins, directions, np.array([20.0]),
+                                near_point_voxels(np.vstack([row, [[20.0, 0.0, 1.0]]])))
     assert ends[0] == pytest.approx(1.6, abs=1e-5)
 
 
 def test_a_ray_that_meets_no_point_runs_to_its_depth():
     ends = point_clearance_ends(np.zeros((1, 3)), np.array([[0.0, 1.0, 0.0]]), np.array([12.0]),
-                               np.array([[-20.0, -20.0, 2.0]]))
+                               near_point_voxels(np.array([[-20.0, -20.0, 2.0]])))
     assert ends[0] == pytest.approx(12.0)
 
 
@@ -55,7 +56,7 @@ def test_stretches_render_free_through_a_volume_dense_at_the_points():
     directions = points - origins
     depths = np.linalg.norm(directions, axis=1)
     directions /= depths[:, None]
-    ends = point_clearance_ends(origins, directions, depths, points)
+    ends = point_clearance_ends(origins, directions, depths, near_point_voxels(points))
     assert np.all(ends <= depths) and np.all(ends >= 0)
     density = torch.from_numpy(near_point_voxels(points, GRID) & False).float()
     ijk = GRID.index_of(points)

@@ -52,18 +52,18 @@ def near_point_voxels(points: np.ndarray, grid: Grid = GRID) -> np.ndarray:
     return near[1:-1, 1:-1, 1:-1]
 
 
-def point_clearance_ends(origins: np.ndarray, directions: np.ndarray, depths: np.ndarray, points: np.ndarray,
+def point_clearance_ends(origins: np.ndarray, directions: np.ndarray, depths: np.ndarray, near: np.ndarray,
                          grid: Grid = GRID) -> np.ndarray:
     """The points rule → float32 [R]: for rays ``origins + s · directions`` (float [R, 3], unit directions, the
-    grid's frame), 0 ≤ s ≤ ``depths`` [R], the distance s where each ray enters the first voxel of
-    :func:`near_point_voxels` (``points``: the LiDAR points of the rays' frame, same frame; 0 for a ray that starts
+    grid's frame), 0 ≤ s ≤ ``depths`` [R], the distance s where each ray enters the first voxel of ``near`` (bool
+    [X, Y, Z]: :func:`near_point_voxels` of the LiDAR points of the rays' frame, same frame; 0 for a ray that starts
     in one); ``depths`` where the ray meets none of them before its point (a ray to a point beyond the grid that
     leaves it without coming near a point: its depth)."""
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     depths = np.asarray(depths, dtype=np.float64).reshape(-1)
     lower = np.asarray(grid.lower, dtype=np.float64)
-    walk = walk_rays(near_point_voxels(points, grid).astype(np.uint8), o, d, empty=0, lower=lower,
+    walk = walk_rays(np.asarray(near, dtype=np.uint8), o, d, empty=0, lower=lower,
                      voxel_size=grid.voxel_size, t_end=depths)
     ends = depths.copy()
     stopped = np.flatnonzero(walk.code != 0)

@@ -251,7 +251,7 @@ class RayBuilder:
             depths = f.depths[keep]
             if self.config.free_stretch == "points":
                 free_ends = self._cached(("ends", position, j), lambda: point_clearance_ends(
-                    origins, directions, depths, points))
+                    origins, directions, depths, self.near_points(position, j)))
             else:
                 free_ends = free_segment_ends(depths)
             parts.append(RayBatch(
