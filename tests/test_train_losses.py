@@ -320,6 +320,12 @@ def test_the_loss_computer_renders_the_rays_of_its_terms(sigma):
         assert terms["free_before"] == pytest.approx(np.mean(stretches), rel=3e-3)
 
 
+def _sigmoid_slope(logits: list[float]) -> list[float]:
+    """σ'(x) = σ(x)(1 - σ(x)) at each of ``logits``."""
+    s = torch.sigmoid(torch.tensor(logits))                       # float32, as the gradients it is held against
+    return (s * (1 - s)).tolist()
+
+
 def test_density_grad_floor_renders_the_sigmoid_and_keeps_a_gradient():
     """--density-grad-floor M: σ = sigmoid(logit) exactly, and the logit's gradient is at least sigmoid'(M)."""
     from occflownet.train.step import SigmoidGradientFloor
@@ -328,8 +334,7 @@ def test_density_grad_floor_renders_the_sigmoid_and_keeps_a_gradient():
     sigma = SigmoidGradientFloor.apply(z, 6.0)
     assert torch.equal(sigma.detach(), torch.sigmoid(z.detach()))
     sigma.sum().backward()
-    expected = [torch.sigmoid(torch.tensor(v)) * (1 - torch.sigmoid(torch.tensor(v))) for v in (-6.0, 0.5, 6.0)]
-    assert z.grad.tolist() == pytest.approx([float(e) for e in expected])
+    assert z.grad.tolist() == pytest.approx(_sigmoid_slope([-6.0, 0.5, 6.0]))
     losses = _computer(density_grad_floor=6.0)
     logit = torch.tensor([-20.0, 0.0]).view(1, 2, 1, 1)
     outputs = {"density": torch.sigmoid(logit), "density_logit": logit}
@@ -337,8 +342,7 @@ def test_density_grad_floor_renders_the_sigmoid_and_keeps_a_gradient():
     both = _computer(density_grad_floor=4.0, density_logit_clip=6.0)     # clamped at 6, gradient floor at 4
     logit = torch.tensor([-20.0, -5.0]).view(1, 2, 1, 1).requires_grad_()
     both.render_density(None, {"density_logit": logit}).sum().backward()
-    assert logit.grad.flatten().tolist() == pytest.approx([float(torch.sigmoid(torch.tensor(-4.0)) *
-                                                                 torch.sigmoid(torch.tensor(4.0)))] * 2)
+    assert logit.grad.flatten().tolist() == pytest.approx(_sigmoid_slope([-4.0, -4.0]))
 
 
 def test_density_logit_clip_renders_at_the_edge_and_keeps_the_gradient():
@@ -351,8 +355,7 @@ def test_density_logit_clip_renders_at_the_edge_and_keeps_the_gradient():
     assert sigma.detach().tolist() == pytest.approx([float(torch.sigmoid(torch.tensor(-6.0))), float(torch.sigmoid(
         torch.tensor(0.5))), float(torch.sigmoid(torch.tensor(6.0)))])
     sigma.sum().backward()
-    expected = [torch.sigmoid(torch.tensor(v)) * (1 - torch.sigmoid(torch.tensor(v))) for v in (-6.0, 0.5, 6.0)]
-    assert z.grad.tolist() == pytest.approx([float(e) for e in expected])
+    assert z.grad.tolist() == pytest.approx(_sigmoid_slope([-6.0, 0.5, 6.0]))
     losses = _computer(density_logit_clip=6.0)
     logit = torch.tensor([-20.0, 0.0]).view(1, 2, 1, 1)
     outputs = {"density": torch.sigmoid(logit), "density_logit": logit}

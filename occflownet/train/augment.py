@@ -11,8 +11,9 @@ to X - 1 - i.
 Fields of an item (``occflownet.train.dataset``; all in the current ego frame) and what a flip does to them:
 ``cam2ego`` [6, 4, 4] → F·cam2ego; ``ray_origins``, ``ray_directions``, ``free_origins``, ``free_directions``
 [R, 3] and ``depth_points`` [P, 3] → their x and/or y negated; ``occ_semantics``, ``occ_mask`` [X, Y, Z] and
-``free_masks`` [T, X, Y, Z] → reversed along the flipped axes; ``flow`` (box moves: voxels int [M, 3], transforms [K, 4, 4] ego → ego) → voxel indices
-mirrored, transforms F·T·F. Depths, labels and everything per ray or per volume are unchanged.
+``free_masks`` [T, X, Y, Z] → reversed along the flipped axes; ``flow`` (box moves: voxels int [M, 3], transforms
+[K, 4, 4] ego → ego) → voxel indices mirrored, transforms F·T·F. Depths, labels and everything per ray or per
+volume are unchanged.
 """
 from __future__ import annotations
 
