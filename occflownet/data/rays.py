@@ -30,7 +30,7 @@ import numpy as np
 
 from occflownet.occ3d import DYNAMIC_FILTER_CLASSES, GRID, map_lidarseg
 from occflownet.data.free_space import FreeSpaceConfig, missing_beams
-from occflownet.choices import FREE_STRETCH_RULES
+from occflownet.choices import FREE_STRETCH_RULES, RAY_SAMPLINGS
 from occflownet.data.free_stretch import free_segment_ends, near_point_voxels, point_clearance_ends
 from occflownet.data.line_of_sight import blocked_by_boxes
 from occflownet.data.records import EgoBoxes
@@ -347,8 +347,19 @@ def endpoint_classes(rays: RayBatch, semantics: np.ndarray) -> np.ndarray:
     return out
 
 
-def sample_rays(rays: RayBatch, num: int, rng: np.random.Generator) -> RayBatch:
-    """``num`` rays drawn uniformly from ``rays`` with ``rng`` (without replacement when there are enough)."""
+def sample_rays(rays: RayBatch, num: int, rng: np.random.Generator, rule: str = "uniform") -> RayBatch:
+    """``num`` rays drawn from ``rays`` with ``rng`` (without replacement when there are enough), by ``rule`` of
+    :data:`RAY_SAMPLINGS`: "uniform" (the official: every ray alike) or "sqrt-balanced" (beyond the paper, in the
+    spirit of RenderOcc's weighted ray sampling): a ray of a class with n_c rays among ``rays`` is drawn with
+    probability ∝ 1 / √n_c, so each class's expected share is ∝ √n_c instead of n_c: a car with 1 % of the rays
+    gets about 6 % of a step's on a world where the road has 40 %."""
     if len(rays) == 0:
         raise ValueError("cannot sample rays: the batch is empty (no LiDAR point projects into a camera)")
-    return rays.take(rng.choice(len(rays), size=num, replace=len(rays) < num))
+    if rule not in RAY_SAMPLINGS:
+        raise ValueError(f"ray sampling must be one of {RAY_SAMPLINGS}, got {rule!r}")
+    replace = len(rays) < num
+    if rule == "uniform":
+        return rays.take(rng.choice(len(rays), size=num, replace=replace))
+    counts = np.bincount(rays.labels, minlength=256).astype(np.float64)
+    p = 1.0 / np.sqrt(counts[rays.labels])
+    return rays.take(rng.choice(len(rays), size=num, replace=replace, p=p / p.sum()))

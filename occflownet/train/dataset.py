@@ -74,7 +74,7 @@ class TrainingSamples(Dataset):
             "cam2ego": torch.from_numpy(sample.cam2current_ego().astype(np.float32)),      # [6, 4, 4]
         }
         if self.cfg.uses_2d:
-            rays = sample_rays(self.rays.rays(position), self.cfg.rays_per_step, rng)
+            rays = sample_rays(self.rays.rays(position), self.cfg.rays_per_step, rng, self.cfg.ray_sampling)
             free = self._free_rays(position, rng)
             offsets = rays.time_offsets if free is None else np.concatenate([rays.time_offsets, free.time_offsets])
             frames = volume_frames(offsets, self.cfg.flow)

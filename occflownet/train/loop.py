@@ -224,7 +224,7 @@ def train_step(state: TrainingState, net, losses: LossComputer, batch: dict, dev
     with torch.autocast(device.type, dtype=amp_dtype, enabled=amp_dtype is not None):
         outputs = net(batch["images"].to(device), batch["intrinsics"].to(device), batch["cam2ego"].to(device),
                       **losses.head_rows(batch, device))
-    terms = losses(outputs, batch, device, generator)
+    terms = losses(outputs, batch, device, generator, step=state.step)
     _stop_if_not_finite(terms, state.step, last_checkpoint(state.cfg.out))
     state.optimizer.zero_grad(set_to_none=True)
     terms["loss"].backward()

@@ -25,9 +25,10 @@ and ``occupied_logits``: σ and the logits at the supervised voxels), renderings
   depth bin nearest to its *closest* point; BCE between the predicted depth distribution and that one-hot, summed
   over bins and averaged over pixels with a target; weight 0.05;
 - "free_space" (``free_space`` or ``free_beyond_grid``, beyond the paper): mean -log(1 - opacity) of the free rays
-  (LiDAR beams without a return, camera rays to points beyond the grid), weight ``free_space_weight`` (none at 0);
+  (LiDAR beams without a return, camera rays to points beyond the grid), weight ``free_space_weight`` (none at 0),
+  raised linearly from 0 over the first ``free_ramp_steps`` steps when that is set;
 - "free_before" (``free_before_point``, beyond the paper): the same loss and weight over the free stretches in
-  front of the rays' points;
+  front of the rays' points (the same ramp);
 - "free_prior" (``free_prior_weight`` > 0, beyond the paper): mean over every voxel of -log(1 - σ), a pull towards
   free space for the voxels no ray reaches.
 """
@@ -50,17 +51,23 @@ VOXEL_WEIGHT = 1.0         # each of the two 3D terms (paper section 3.3)
 
 @dataclass(frozen=True)
 class LossTerm:
-    """One weighted term of the training loss, logged as ``name``: ``weight · fn(*inputs)``, the inputs named by
-    ``needs`` in the order ``fn`` takes them."""
+    """One weighted term of the training loss, logged as ``name``: ``weight · ramp(step) · fn(*inputs)``, the inputs
+    named by ``needs`` in the order ``fn`` takes them; ramp(step) = min(1, step / ramp_steps) (1 when ramp_steps is
+    0 or no step is given)."""
 
     name: str
     weight: float
     needs: tuple[str, ...]
     fn: Callable[..., torch.Tensor]
+    ramp_steps: int = 0
 
-    def __call__(self, inputs: Mapping[str, Any]) -> torch.Tensor:
-        """The weighted term (a scalar tensor) of ``inputs``, which maps at least every name of ``needs``."""
-        return self.weight * self.fn(*(inputs[name] for name in self.needs))
+    def __call__(self, inputs: Mapping[str, Any], step: int | None = None) -> torch.Tensor:
+        """The weighted term (a scalar tensor) of ``inputs``, which maps at least every name of ``needs``, at
+        optimisation step ``step`` (counted from 0)."""
+        return self.weight * self.ramp(step) * self.fn(*(inputs[name] for name in self.needs))
+
+    def ramp(self, step: int | None) -> float:
+        return 1.0 if self.ramp_steps <= 0 or step is None else min(1.0, step / self.ramp_steps)
 
 
 def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
@@ -82,9 +89,11 @@ def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
                               ("depth_prob", "feature_intrinsics", "cam2ego", "depth_points", "depth_bins"),
                               lidar_depth_loss))
     if cfg.uses_free_rays and cfg.free_space_weight > 0:
-        terms.append(LossTerm("free_space", cfg.free_space_weight, ("free_opacity",), free_space_loss))
+        terms.append(LossTerm("free_space", cfg.free_space_weight, ("free_opacity",), free_space_loss,
+                              cfg.free_ramp_steps))
     if cfg.free_before_point and cfg.free_space_weight > 0:
-        terms.append(LossTerm("free_before", cfg.free_space_weight, ("before_opacity",), free_space_loss))
+        terms.append(LossTerm("free_before", cfg.free_space_weight, ("before_opacity",), free_space_loss,
+                              cfg.free_ramp_steps))
     if cfg.free_prior_weight > 0:
         terms.append(LossTerm("free_prior", cfg.free_prior_weight, ("density",), free_prior_loss))
     return tuple(terms)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 
 from occflownet.choices import (FLOW_MOVERS, FREE_STRETCH_RULES, HEAD_INITS, LR_SCHEDULES, PRECISIONS, PRESET_NAMES,
-                                RENDER_SEMANTICS, SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
+                                RAY_SAMPLINGS, RENDER_SEMANTICS, SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
 from occflownet.options import option
 
 # The per-preset recipe: the values a TrainConfig field left at None takes. The official values (AdamW 1e-4,
@@ -86,6 +86,13 @@ class TrainConfig:
     free_rays_per_step: int = option(2048, "free rays per sample per step (with --free-space/--free-beyond-grid; "
                                            "--free-before-point renders as many of the rays' free stretches)")
     free_space_weight: float = option(1.0, "weight of the free-space term -log(1 - opacity)")
+    free_ramp_steps: int = option(0, "raise the weight of the free terms (--free-space, --free-beyond-grid, "
+                                     "--free-before-point) linearly from 0 to --free-space-weight over this many "
+                                     "steps, so that surfaces form before the free space is carved (0: full weight "
+                                     "from the start; beyond the paper)")
+    ray_sampling: str = option("uniform", "how a step draws its rays: uniform (official) or sqrt-balanced (a ray of "
+                                          "a class with n rays in the keyframe is drawn with probability ∝ 1/√n; "
+                                          "beyond the paper)", choices=RAY_SAMPLINGS)
     bev_flip: bool = option(False, "mirror each training sample's ego frame in x and in y, each with probability "
                                    "0.5 (the official recipe's BEV augmentation; occflownet/train/augment.py)")
     max_steps: int = option(1000, "optimisation steps")
@@ -141,8 +148,10 @@ class TrainConfig:
                              "be >= 0")
         if self.free_stretch not in FREE_STRETCH_RULES:
             raise ValueError(f"free_stretch must be one of {FREE_STRETCH_RULES}, got {self.free_stretch!r}")
-        if self.free_rays_per_step < 1 or self.free_space_weight < 0:
-            raise ValueError("free_rays_per_step must be >= 1 and free_space_weight >= 0")
+        if self.free_rays_per_step < 1 or self.free_space_weight < 0 or self.free_ramp_steps < 0:
+            raise ValueError("free_rays_per_step must be >= 1, free_space_weight and free_ramp_steps >= 0")
+        if self.ray_sampling not in RAY_SAMPLINGS:
+            raise ValueError(f"ray_sampling must be one of {RAY_SAMPLINGS}, got {self.ray_sampling!r}")
 
     @property
     def uses_2d(self) -> bool:

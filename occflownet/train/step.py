@@ -54,9 +54,11 @@ class LossComputer:
         return {"density_at": None if rows is None else rows.to(device),
                 "logits_at": batch["occupied_rows"].to(device)}
 
-    def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None) -> dict:
+    def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None,
+                 step: int | None = None) -> dict:
+        """The terms at optimisation step ``step`` (their ramps; None: full weight)."""
         inputs = self.inputs(outputs, batch, device, generator)
-        terms = {term.name: term(inputs) for term in self.terms}
+        terms = {term.name: term(inputs, step) for term in self.terms}
         terms["loss"] = sum(terms.values())
         return terms
 
