@@ -14,6 +14,7 @@ LR_SCHEDULES: tuple[str, ...] = ("constant", "cosine")      # the learning rate 
 INT8_RANGES: tuple[str, ...] = ("reduced", "full")          # int8 weights: 7-bit (any x86 CPU) or 8-bit (VNNI/AMX)
 PRECISIONS: tuple[str, ...] = ("auto", "bf16", "fp32")     # training arithmetic of the network (train/loop.py)
 FREE_STRETCH_RULES: tuple[str, ...] = ("fraction", "points")  # end of a ray's free stretch (data/free_stretch.py)
+VOXEL_WEIGHTINGS: tuple[str, ...] = ("none", "sqrt-balanced")  # 3D density BCE per voxel (data/class_weights.py)
 RAY_SAMPLINGS: tuple[str, ...] = ("uniform", "sqrt-balanced")  # how a step draws its rays (data/rays.py sample_rays)
 
 

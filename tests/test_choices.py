@@ -12,7 +12,8 @@ import pytest
 
 from occflownet import choices
 from occflownet.choices import (FLOW_MOVERS, FREE_STRETCH_RULES, HEAD_INITS, INT8_RANGES, LR_SCHEDULES, PRECISIONS,
-                                PRESET_NAMES, RENDER_SEMANTICS, SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
+                                PRESET_NAMES, RAY_SAMPLINGS, RENDER_SEMANTICS, SIGMA_READINGS, SUPERVISION_MODES,
+                                VOXEL_WEIGHTINGS, supervision_parts)
 from occflownet.cli import build_parser
 from occflownet.commands.train import config_from_args
 from occflownet.options import config_argv
@@ -24,7 +25,8 @@ SETS = {"PRESET_NAMES": ("tiny", "base", "paper"), "HEAD_INITS": ("prior", "offi
         "SUPERVISION_MODES": ("2d", "3d", "2d+3d"), "FLOW_MOVERS": ("idw", "nearest"),
         "SIGMA_READINGS": ("density", "opacity"), "RENDER_SEMANTICS": ("mixture", "normalized"),
         "LR_SCHEDULES": ("constant", "cosine"), "INT8_RANGES": ("reduced", "full"),
-        "PRECISIONS": ("auto", "bf16", "fp32"), "FREE_STRETCH_RULES": ("fraction", "points")}
+        "PRECISIONS": ("auto", "bf16", "fp32"), "FREE_STRETCH_RULES": ("fraction", "points"),
+        "RAY_SAMPLINGS": ("uniform", "sqrt-balanced"), "VOXEL_WEIGHTINGS": ("none", "sqrt-balanced")}
 
 
 def test_the_sets_of_choices():
@@ -60,7 +62,8 @@ def test_the_command_lines_offer_the_same_choices():
                                     "flow_mover": FLOW_MOVERS, "head_init": ("", *HEAD_INITS),
                                     "sigma_is": SIGMA_READINGS, "render_semantics": RENDER_SEMANTICS,
                                     "lr_schedule": LR_SCHEDULES, "precision": PRECISIONS,
-                                    "free_stretch": FREE_STRETCH_RULES}
+                                    "free_stretch": FREE_STRETCH_RULES, "ray_sampling": RAY_SAMPLINGS,
+                                    "voxel_weighting": VOXEL_WEIGHTINGS}
     assert _choices_of("quickstart") == {"supervision": SUPERVISION_MODES}
     for verb in ("export", "predict"):
         assert _choices_of(verb)["preset"] == PRESET_NAMES
@@ -131,6 +134,7 @@ def test_the_quickstarts_train_command_parses_to_the_config_it_runs(cfg, tmp_pat
     parsed = build_parser().parse_args(shlex.split(shlex.join(argv)))
     assert parsed.resume and config_from_args(parsed) == train_cfg
     assert train_cfg.flow == (cfg.supervision != "3d") and train_cfg.time_limit_s == cfg.train_minutes * 60
+    assert train_cfg.resolved_threshold() == (0.15 if cfg.supervision == "3d" else 0.35)
 
 
 def test_every_quickstart_field_is_reachable_from_the_command_line():
@@ -138,7 +142,7 @@ def test_every_quickstart_field_is_reachable_from_the_command_line():
     from occflownet.options import config_kwargs
 
     changed = QuickstartConfig(out="elsewhere", scenes=5, frames=4, seed=2, train_minutes=0.5, max_steps=9,
-                               supervision="2d+3d", voxel_mask=False)
+                               supervision="2d+3d", voxel_mask=False, threshold=0.25)
     argv = ["quickstart", *config_argv(changed, QuickstartConfig())]
     assert Used(**config_kwargs(build_parser().parse_args(argv), Used)) == changed
-    assert len(argv) == 1 + 2 * 7 + 1                                     # every field changed, every one given
+    assert len(argv) == 1 + 2 * 8 + 1                                     # every field changed, every one given

@@ -1,5 +1,6 @@
 """`occflownet prepare` (index + class counts + flow hook) and the class-weight formula."""
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -7,7 +8,8 @@ from nuscenes_fixture import SCENES, write_fixture, visible_hits
 
 from occflownet.cli import main
 from occflownet.occ3d import NUM_CLASSES, map_lidarseg
-from occflownet.data.class_weights import ClassStats, class_weights
+from occflownet.data.class_weights import (VOXEL_WEIGHT_CAP, ClassStats, class_weights, count_voxels,
+                                           voxel_class_weights)
 from occflownet.data.index import index_dir, load_index
 
 
@@ -27,6 +29,30 @@ def test_class_weights_formula():
         class_weights(np.zeros(NUM_CLASSES))
     with pytest.raises(ValueError, match="17 non-negative"):
         class_weights(np.ones(5))
+
+
+def test_voxel_class_weights_and_counts(tmp_path):
+    """--voxel-weighting sqrt-balanced: w_c = √(N_free / N_c) between 1 and the cap; counted over the labels of the
+    given keyframes, inside mask_camera when masked."""
+    counts = np.zeros(NUM_CLASSES + 1, dtype=np.int64)
+    counts[[4, 11, 8, 17]] = [100, 10_000, 1, 40_000]
+    w = voxel_class_weights(counts)
+    assert w[17] == 1.0 and w[4] == pytest.approx(20.0) and w[11] == pytest.approx(2.0)
+    assert w[8] == VOXEL_WEIGHT_CAP and w[0] == 1.0                   # capped; absent classes make no term
+    with pytest.raises(ValueError, match="no free voxel"):
+        voxel_class_weights(np.r_[np.ones(NUM_CLASSES), 0])
+    with pytest.raises(ValueError, match="18 non-negative"):
+        voxel_class_weights(np.ones(NUM_CLASSES))
+    semantics = np.full((200, 200, 16), 17, np.uint8)
+    semantics[:2, :, 0] = 4                                         # 400 car voxels, 200 of them in the mask
+    mask = np.zeros((200, 200, 16), np.uint8)
+    mask[1:, :, :] = 1
+    np.savez(tmp_path / "labels.npz", semantics=semantics, mask_lidar=mask, mask_camera=mask)
+    index = {0: SimpleNamespace(occupancy_path="labels.npz"), 1: SimpleNamespace(occupancy_path="labels.npz")}
+    every = count_voxels(tmp_path, index, [0, 1], masked=False)
+    inside = count_voxels(tmp_path, index, [0, 1], masked=True)
+    assert every[4] == 800 and every[17] == 2 * 200 * 200 * 16 - 800 and every.sum() == 2 * 200 * 200 * 16
+    assert inside[4] == 400 and inside.sum() == 2 * mask.sum()
 
 
 def _expected_counts(fx, scenes):

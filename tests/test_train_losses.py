@@ -125,6 +125,8 @@ def test_voxel_losses_by_hand_with_mask():
         voxel_semantics_loss(logits[:, :3], every["occupied_labels"])
     # the terms read σ and the logits at the supervised voxels, and their targets
     assert _term(TrainConfig(supervision="3d"), "voxel_density").needs == ("voxel_sigma", "voxel_occupied")
+    assert _term(TrainConfig(supervision="3d", voxel_weighting="sqrt-balanced"), "voxel_density").needs == \
+        ("voxel_sigma", "voxel_occupied", "voxel_labels", "voxel_weights")
     assert _term(TrainConfig(supervision="3d", voxel_mask=True), "voxel_semantics").needs == \
         ("occupied_logits", "occupied_labels")
 
@@ -197,6 +199,48 @@ def test_free_prior_charges_every_voxel_by_its_opacity():
     value.backward()
     assert float(prior.grad[0, 0, 0, 0]) > float(prior.grad[0, 1, 1, 1]) > 0
     assert "free_prior" not in [t.name for t in loss_terms(TrainConfig(supervision="3d"))]
+
+
+def test_voxel_weighting_weighs_each_voxel_by_its_label():
+    """--voxel-weighting: BCE × w(label) before the mean, by hand: σ 0.8 at a car voxel (w 5), 0.3 at a free one (w 1)
+    → (−5·log 0.8 − log 0.7) / 2; the labels come from voxel_targets, masked like the targets."""
+    density = torch.tensor([0.8, 0.3])
+    gt = torch.tensor([4, 17], dtype=torch.uint8).view(2, 1, 1)
+    every = voxel_targets(gt)
+    assert every["voxel_labels"].tolist() == [4, 17]
+    weights = torch.ones(NUM_CLASSES + 1)
+    weights[4] = 5.0
+    assert voxel_density_loss(density, every["voxel_occupied"], every["voxel_labels"], weights).item() == \
+        pytest.approx(-(5 * math.log(0.8) + math.log(0.7)) / 2, rel=1e-6)
+    masked = voxel_targets(gt, torch.tensor([False, True]).view(2, 1, 1))
+    assert masked["voxel_labels"].tolist() == [17]
+    with pytest.raises(ValueError, match="weighting needs"):
+        voxel_density_loss(density, every["voxel_occupied"], None, weights)
+    with pytest.raises(ValueError, match="needs the voxel_weights"):   # the option without its weights
+        _computer(supervision="3d", voxel_weighting="sqrt-balanced")
+    from occflownet.model.presets import get_preset
+    from occflownet.train.step import LossComputer
+
+    losses = LossComputer(TrainConfig(supervision="3d", voxel_weighting="sqrt-balanced", depth_loss=False),
+                          get_preset("tiny"), None, voxel_weights=weights)
+    outputs = {"density": density.view(1, 2, 1, 1), "logits": torch.zeros(1, 2, 1, 1, NUM_CLASSES)}
+    terms = losses(outputs, every, torch.device("cpu"))
+    assert float(terms["voxel_density"]) == pytest.approx(-(5 * math.log(0.8) + math.log(0.7)) / 2, rel=1e-6)
+
+
+def test_free_terms_ramp_in_linearly_over_free_ramp_steps():
+    """--free-ramp-steps N: the free terms weigh step / N of their weight until step N, then all of it; the other
+    terms are not ramped; without a step (analysis calls) every term has its full weight."""
+    terms = {t.name: t for t in loss_terms(TrainConfig(free_beyond_grid=True, free_before_point=True,
+                                                       free_ramp_steps=400, free_space_weight=0.5))}
+    opacity = torch.tensor([1 - math.exp(-1.0)])                # −log(1 − opacity) = 1
+    inputs = {"free_opacity": opacity, "before_opacity": opacity}
+    for name in ("free_space", "free_before"):
+        assert [float(terms[name](inputs, s)) for s in (0, 100, 400, 1000)] == pytest.approx([0, 0.125, 0.5, 0.5])
+        assert float(terms[name](inputs)) == pytest.approx(0.5)
+    assert terms["render_semantics"].ramp(0) == terms["render_depth"].ramp(0) == 1.0
+    with pytest.raises(ValueError, match="free_ramp_steps"):
+        TrainConfig(free_ramp_steps=-1)
 
 
 def _computer(**overrides):

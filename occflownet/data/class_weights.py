@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from occflownet.data.loaders import load_occupancy
 from occflownet.occ3d import NUM_CLASSES
 
 
@@ -56,6 +57,33 @@ def class_weights(counts) -> np.ndarray:
     mean = weights[present].mean()
     weights[present] = weights[present] / mean if mean > 0 else 1.0
     return weights.astype(np.float32)
+
+
+VOXEL_WEIGHT_CAP = 30.0   # the largest weight voxel_class_weights gives a class (a class of a few voxels stays bounded)
+
+
+def voxel_class_weights(counts) -> np.ndarray:
+    """int [18] voxel counts N_c of the labels (index 17 = free) → float32 [18] weights of the 3D density BCE
+    (``--voxel-weighting sqrt-balanced``, beyond the paper): √(N_free / N_c), at least 1 and at most
+    :data:`VOXEL_WEIGHT_CAP`; free weighs 1, and so does a class with no voxel (it makes no term)."""
+    counts = np.asarray(counts, dtype=np.float64)
+    if counts.shape != (NUM_CLASSES + 1,) or (counts < 0).any():
+        raise ValueError(f"counts must be {NUM_CLASSES + 1} non-negative numbers (17 = free), got {counts.shape}")
+    if counts[NUM_CLASSES] == 0:
+        raise ValueError("no free voxel in the counted labels: cannot balance against free space")
+    ratio = np.divide(counts[NUM_CLASSES], counts, out=np.ones_like(counts), where=counts > 0)
+    return np.clip(np.sqrt(ratio), 1.0, VOXEL_WEIGHT_CAP).astype(np.float32)
+
+
+def count_voxels(dataroot, index, positions, masked: bool) -> np.ndarray:
+    """int64 [18]: voxels per label (17 = free) of the Occ3D labels of keyframes ``positions`` of ``index``, inside
+    ``mask_camera`` when ``masked`` (what ``--voxel-mask`` supervises), else every voxel."""
+    counts = np.zeros(NUM_CLASSES + 1, dtype=np.int64)
+    for position in positions:
+        occ = load_occupancy(dataroot, index[int(position)].occupancy_path)
+        labels = occ.semantics[occ.mask_camera.astype(bool)] if masked else occ.semantics
+        counts += np.bincount(labels.reshape(-1), minlength=NUM_CLASSES + 1)[:NUM_CLASSES + 1]
+    return counts
 
 
 def count_classes(builder, positions, progress: bool = False) -> np.ndarray:

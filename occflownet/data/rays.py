@@ -351,8 +351,8 @@ def sample_rays(rays: RayBatch, num: int, rng: np.random.Generator, rule: str = 
     """``num`` rays drawn from ``rays`` with ``rng`` (without replacement when there are enough), by ``rule`` of
     :data:`RAY_SAMPLINGS`: "uniform" (the official: every ray alike) or "sqrt-balanced" (beyond the paper, in the
     spirit of RenderOcc's weighted ray sampling): a ray of a class with n_c rays among ``rays`` is drawn with
-    probability ∝ 1 / √n_c, so each class's expected share is ∝ √n_c instead of n_c: a car with 1 % of the rays
-    gets about 6 % of a step's on a world where the road has 40 %."""
+    probability ∝ 1 / √n_c, so each class's expected share is ∝ √n_c instead of n_c (while a step takes a small part
+    of the rays: the draws are without replacement, so a class never gets more than its n_c rays)."""
     if len(rays) == 0:
         raise ValueError("cannot sample rays: the batch is empty (no LiDAR point projects into a camera)")
     if rule not in RAY_SAMPLINGS:

@@ -21,6 +21,7 @@ from torch.utils.data import DataLoader
 
 from occflownet.choices import PRECISIONS
 from occflownet.contract import calibration_json
+from occflownet.data.class_weights import count_voxels, voxel_class_weights
 from occflownet.data.index import load_index
 from occflownet.model import get_preset
 from occflownet.model.presets import ModelConfig
@@ -44,7 +45,8 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path
         ddp.barrier(info)
         ddp.shutdown(info)
         return ckpt_path
-    losses = LossComputer(cfg, state.model_cfg, _class_weights(cfg, index, device))
+    losses = LossComputer(cfg, state.model_cfg, _class_weights(cfg, index, device),
+                          voxel_weights=_voxel_weights(cfg, index, positions))
     loader = _data_loader(cfg, index, positions, flow_records, state.step, info)
     _write_train_config(cfg, info)
     monitor = _Monitor(cfg, state.step, info, progress)
@@ -158,6 +160,14 @@ def _class_weights(cfg: TrainConfig, index, device) -> torch.Tensor | None:
     if not cfg.loss_weighting or index.class_stats is None:
         return None
     return torch.as_tensor(np.asarray(index.class_stats.weights), dtype=torch.float32, device=device)
+
+
+def _voxel_weights(cfg: TrainConfig, index, positions) -> torch.Tensor | None:
+    """float32 [18] weights of the 3D density BCE (``--voxel-weighting``) from the training split's labels, or None."""
+    if cfg.voxel_weighting == "none" or not cfg.uses_3d:
+        return None
+    counts = count_voxels(cfg.dataroot, index, positions, masked=cfg.voxel_mask)
+    return torch.from_numpy(voxel_class_weights(counts))
 
 
 def _distributed(model: torch.nn.Module, cfg: TrainConfig, info, device) -> torch.nn.Module:

@@ -81,7 +81,9 @@ def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
                   LossTerm("render_semantics", SEMANTIC_WEIGHT, ("rendered", "ray_labels", "class_weights"),
                            semantics)]
     if cfg.uses_3d:
-        terms += [LossTerm("voxel_density", VOXEL_WEIGHT, ("voxel_sigma", "voxel_occupied"), voxel_density_loss),
+        weighted = ("voxel_labels", "voxel_weights") if cfg.voxel_weighting != "none" else ()
+        terms += [LossTerm("voxel_density", VOXEL_WEIGHT, ("voxel_sigma", "voxel_occupied", *weighted),
+                           voxel_density_loss),
                   LossTerm("voxel_semantics", VOXEL_WEIGHT, ("occupied_logits", "occupied_labels"),
                            voxel_semantics_loss)]
     if cfg.depth_loss:
@@ -193,6 +195,7 @@ def voxel_targets(semantics_gt: torch.Tensor, mask: torch.Tensor | None = None) 
 
     - "voxel_rows" int64 [K]: the kept voxels (only with a mask; without one every voxel is kept, in row order);
     - "voxel_occupied" float32 [K] (or [X·Y·Z]): the density BCE's targets, 1 where the label is occupied;
+    - "voxel_labels" uint8 [K] (or [X·Y·Z]): their labels (17 = free), for ``voxel_weights``;
     - "occupied_rows" int64 [K'], "occupied_labels" int64 [K']: the kept occupied voxels and their classes.
 
     The data loader adds them to each 3D sample (``occflownet.train.dataset``; ``collate`` offsets the rows by the
@@ -211,21 +214,33 @@ def voxel_targets(semantics_gt: torch.Tensor, mask: torch.Tensor | None = None) 
         keep = mask.bool().reshape(-1)
         out["voxel_rows"] = torch.nonzero(keep).reshape(-1)
         out["voxel_occupied"] = occupied[keep].float()
+        out["voxel_labels"] = labels[keep].to(torch.uint8)
         occupied = occupied & keep
     else:
         out["voxel_occupied"] = occupied.float()
+        out["voxel_labels"] = labels.to(torch.uint8)
     out["occupied_rows"] = torch.nonzero(occupied).reshape(-1)
     out["occupied_labels"] = labels[occupied]
     return out
 
 
-def voxel_density_loss(sigma: torch.Tensor, occupied: torch.Tensor) -> torch.Tensor:
-    """BCE(σ, occupied), mean over the supervised voxels, unweighted: sigma [K] in [0, 1] (the density at the rows
-    of :func:`voxel_targets`), occupied float [K] (its "voxel_occupied"). K = 0 gives 0 (graph kept)."""
+def voxel_density_loss(sigma: torch.Tensor, occupied: torch.Tensor, labels: torch.Tensor | None = None,
+                       voxel_weights: torch.Tensor | None = None) -> torch.Tensor:
+    """BCE(σ, occupied), mean over the supervised voxels: sigma [K] in [0, 1] (the density at the rows of
+    :func:`voxel_targets`), occupied float [K] (its "voxel_occupied"); with voxel_weights [18] (None: unweighted, the
+    official) each voxel's BCE is multiplied by the weight of its label, labels [K] (its "voxel_labels", 17 = free)
+    before the mean. K = 0 gives 0 (graph kept)."""
     if sigma.shape != occupied.shape or sigma.dim() != 1:
         raise ValueError(f"sigma and occupied must both be [K], got {tuple(sigma.shape)} and {tuple(occupied.shape)}")
+    if not sigma.numel():
+        return sigma.sum() * 0
     with torch.autocast(device_type=sigma.device.type, enabled=False):
-        return F.binary_cross_entropy(sigma.float(), occupied.float()) if sigma.numel() else sigma.sum() * 0
+        if voxel_weights is None:
+            return F.binary_cross_entropy(sigma.float(), occupied.float())
+        if labels is None or labels.shape != sigma.shape or voxel_weights.shape != (NUM_CLASSES + 1,):
+            raise ValueError(f"weighting needs labels [K] and voxel_weights [{NUM_CLASSES + 1}]")
+        weight = voxel_weights.to(sigma.device, torch.float32)[labels.long()]
+        return F.binary_cross_entropy(sigma.float(), occupied.float(), weight=weight)
 
 
 def voxel_semantics_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:

@@ -6,7 +6,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 
 from occflownet.choices import (FLOW_MOVERS, FREE_STRETCH_RULES, HEAD_INITS, LR_SCHEDULES, PRECISIONS, PRESET_NAMES,
-                                RAY_SAMPLINGS, RENDER_SEMANTICS, SIGMA_READINGS, SUPERVISION_MODES, supervision_parts)
+                                RAY_SAMPLINGS, RENDER_SEMANTICS, SIGMA_READINGS, SUPERVISION_MODES, VOXEL_WEIGHTINGS,
+                                supervision_parts)
 from occflownet.options import option
 
 # The per-preset recipe: the values a TrainConfig field left at None takes. The official values (AdamW 1e-4,
@@ -66,6 +67,10 @@ class TrainConfig:
                                             "official; beyond the paper)")
     voxel_mask: bool = option(False, "3D voxel losses only inside mask_camera (off: every voxel, as the official "
                                      "code)")
+    voxel_weighting: str = option("none", "3D density BCE per voxel: none (official) or sqrt-balanced: a voxel of "
+                                          "class c weighs sqrt(N_free / N_c), 1 to 30, N counted over the training "
+                                          "split's labels (inside mask_camera with --voxel-mask); beyond the paper",
+                                  choices=VOXEL_WEIGHTINGS)
     head_init: str = option("", "σ/semantic head init: prior (σ ≈ 0.1 at the start) or official (Xavier, zero "
                                 "bias); empty: the preset's", choices=HEAD_INIT_CHOICES)
     free_space: bool = option(False, "also render LiDAR beams that returned nothing; their opacity goes to 0 "
@@ -150,6 +155,8 @@ class TrainConfig:
             raise ValueError(f"free_stretch must be one of {FREE_STRETCH_RULES}, got {self.free_stretch!r}")
         if self.free_rays_per_step < 1 or self.free_space_weight < 0 or self.free_ramp_steps < 0:
             raise ValueError("free_rays_per_step must be >= 1, free_space_weight and free_ramp_steps >= 0")
+        if self.voxel_weighting not in VOXEL_WEIGHTINGS:
+            raise ValueError(f"voxel_weighting must be one of {VOXEL_WEIGHTINGS}, got {self.voxel_weighting!r}")
         if self.ray_sampling not in RAY_SAMPLINGS:
             raise ValueError(f"ray_sampling must be one of {RAY_SAMPLINGS}, got {self.ray_sampling!r}")
 

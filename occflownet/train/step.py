@@ -31,10 +31,14 @@ class LossComputer:
     (``self.needs``)."""
 
     def __init__(self, cfg: TrainConfig, model_cfg: ModelConfig, class_weights: torch.Tensor | None,
-                 render_cfg: RenderConfig | None = None):
+                 render_cfg: RenderConfig | None = None, voxel_weights: torch.Tensor | None = None):
         self.cfg = cfg
         self.render_cfg = render_cfg or RenderConfig(density_scale=cfg.density_scale, sigma_is=cfg.sigma_is)
         self.class_weights = class_weights
+        self.voxel_weights = voxel_weights   # float32 [18] of the 3D density BCE, or None (unweighted)
+        if cfg.uses_3d and cfg.voxel_weighting != "none" and voxel_weights is None:
+            raise ValueError(f"voxel_weighting={cfg.voxel_weighting!r} needs the voxel_weights [18] "
+                             "(occflownet.data.class_weights.voxel_class_weights)")
         self.depth_bins = torch.tensor(model_cfg.depth_bin_centers(), dtype=torch.float32)
         self.terms = loss_terms(cfg)
         self.needs = frozenset(name for term in self.terms for name in term.needs)
@@ -70,13 +74,14 @@ class LossComputer:
           the batch's "voxel_rows" (every voxel without) and "occupied_rows" (the model gave them at those rows
           when :meth:`head_rows` asked it to, else they are picked from the grid);
         - renderings (:meth:`renderings`): "rendered", "free_opacity" [F], "before_opacity" [S];
-        - constants: "class_weights" [17] or None, "depth_bins" [D];
+        - constants: "class_weights" [17] or None, "voxel_weights" [18] or None, "depth_bins" [D];
         - every other name is a batch field, moved to ``device`` ("ray_depths" [R], "ray_labels" [R], "cam2ego"
           [B, N, 4, 4], "depth_points" B × [P_b, 3], "occ_semantics" [B, X, Y, Z], "occ_mask" [B, X, Y, Z]).
         """
         density, logits = outputs["density"].float(), outputs["logits"].float()
         found = {"density": density, "logits": logits, "depth_bins": self.depth_bins.to(device),
-                 "class_weights": None if self.class_weights is None else self.class_weights.to(device)}
+                 "class_weights": None if self.class_weights is None else self.class_weights.to(device),
+                 "voxel_weights": None if self.voxel_weights is None else self.voxel_weights.to(device)}
         if "voxel_sigma" in self.needs:
             found["voxel_sigma"] = self._at_rows(density.reshape(-1), batch.get("voxel_rows"), density.dim() == 1,
                                                  device)
