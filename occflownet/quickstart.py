@@ -45,14 +45,6 @@ class QuickstartConfig:
                                     "(docs/ablation.md, docs/training.md)", choices=SUPERVISION_MODES)
     voxel_mask: bool = option(True, "3D voxel losses only inside mask_camera (train --voxel-mask; the quickest "
                                     "recipe measured, docs/training.md)")
-    threshold: float | None = option(None, "τ stored with the model (default: 0.15 with 3D labels, measured best "
-                                           "on unseen scenes, docs/training.md; else train's default)")
-
-
-# τ of the quickstart's model when 3D labels train it: the official 0.30 leaves the objects of an unseen scene,
-# which a model of minutes predicts at σ ≈ 0.1–0.3, mostly free; 0.15 was chosen on the val scenes of two worlds
-# and confirmed on a third (docs/training.md, § "The quickstart's recipe, chosen again").
-THRESHOLD_3D = 0.15
 
 
 @dataclass(frozen=True)
@@ -189,13 +181,11 @@ def _prepare(cfg: QuickstartConfig, paths: QuickstartPaths, announce):
 
 def train_config(cfg: QuickstartConfig, world: Path, run: Path, version: str) -> TrainConfig:
     """The run the quickstart trains: ``tiny`` on ``world``'s train split into ``run``, with occupancy flow when
-    rays are rendered (2D supervision), for ``cfg``'s time and step budget, τ = :data:`THRESHOLD_3D` with 3D labels
-    unless ``cfg.threshold`` says otherwise."""
-    parts = supervision_parts(cfg.supervision)
-    threshold = cfg.threshold if cfg.threshold is not None else THRESHOLD_3D if "3d" in parts else None
+    rays are rendered (2D supervision), for ``cfg``'s time and step budget."""
     return TrainConfig(preset="tiny", dataroot=str(world), out=str(run), version=version, split="train",
-                       supervision=cfg.supervision, flow="2d" in parts, time_limit_s=cfg.train_minutes * 60,
-                       max_steps=cfg.max_steps, seed=cfg.seed, voxel_mask=cfg.voxel_mask, threshold=threshold)
+                       supervision=cfg.supervision, flow="2d" in supervision_parts(cfg.supervision),
+                       time_limit_s=cfg.train_minutes * 60,
+                       max_steps=cfg.max_steps, seed=cfg.seed, voxel_mask=cfg.voxel_mask)
 
 
 def train_argv(train_cfg: TrainConfig) -> list[str]:

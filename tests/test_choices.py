@@ -134,7 +134,6 @@ def test_the_quickstarts_train_command_parses_to_the_config_it_runs(cfg, tmp_pat
     parsed = build_parser().parse_args(shlex.split(shlex.join(argv)))
     assert parsed.resume and config_from_args(parsed) == train_cfg
     assert train_cfg.flow == (cfg.supervision != "3d") and train_cfg.time_limit_s == cfg.train_minutes * 60
-    assert train_cfg.resolved_threshold() == (0.15 if cfg.supervision == "3d" else 0.35)
 
 
 def test_every_quickstart_field_is_reachable_from_the_command_line():
@@ -142,7 +141,7 @@ def test_every_quickstart_field_is_reachable_from_the_command_line():
     from occflownet.options import config_kwargs
 
     changed = QuickstartConfig(out="elsewhere", scenes=5, frames=4, seed=2, train_minutes=0.5, max_steps=9,
-                               supervision="2d+3d", voxel_mask=False, threshold=0.25)
+                               supervision="2d+3d", voxel_mask=False)
     argv = ["quickstart", *config_argv(changed, QuickstartConfig())]
     assert Used(**config_kwargs(build_parser().parse_args(argv), Used)) == changed
-    assert len(argv) == 1 + 2 * 8 + 1                                     # every field changed, every one given
+    assert len(argv) == 1 + 2 * 7 + 1                                     # every field changed, every one given
