@@ -99,6 +99,7 @@ def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, ray
     state.ema.update = clock.timed("EMA", state.ema.update)
     generator = torch.Generator().manual_seed(0)
     amp = loop.autocast_dtype(device, cfg.precision)
+    loop.float32_math(device, cfg.precision)
     batches = iter(loop._data_loader(cfg, index, positions, flows, 0, loop.ddp.DistInfo()))
 
     def step(n: int) -> None:

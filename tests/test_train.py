@@ -186,6 +186,24 @@ def test_precision_autocasts_to_bf16_on_cuda_and_on_cpus_only_when_asked_and_nat
         autocast_dtype(cpu, "fp16")
 
 
+def test_fp32_on_cuda_switches_tf32_off_and_nothing_else_touches_it():
+    """cuDNN convolutions run in TF32 by default on CUDA: `--precision fp32` turns that (and TF32 matmuls) off, the
+    other precisions and CPUs leave the flags as they are (set here, no GPU needed: they are process flags)."""
+    from occflownet.train.loop import float32_math
+    cudnn, matmul = torch.backends.cudnn, torch.backends.cuda.matmul
+    saved = cudnn.allow_tf32, matmul.allow_tf32
+    try:
+        cudnn.allow_tf32 = matmul.allow_tf32 = True
+        for device, precision in ((torch.device("cuda"), "auto"), (torch.device("cuda"), "bf16"),
+                                  (torch.device("cpu"), "fp32")):
+            float32_math(device, precision)
+            assert cudnn.allow_tf32 and matmul.allow_tf32
+        float32_math(torch.device("cuda"), "fp32")
+        assert not cudnn.allow_tf32 and not matmul.allow_tf32
+    finally:
+        cudnn.allow_tf32, matmul.allow_tf32 = saved
+
+
 def test_progress_bar_shows_what_the_run_processes_and_the_time_left_to_its_budget(tmp_path):
     from occflownet.train.distributed import DistInfo
     from occflownet.train.loop import _Monitor

@@ -79,6 +79,16 @@ def autocast_dtype(device: torch.device, precision: str = "auto") -> torch.dtype
     return torch.bfloat16 if precision == "bf16" and native else None
 
 
+def float32_math(device: torch.device, precision: str) -> None:
+    """Make ``--precision fp32`` float32 on CUDA too: PyTorch runs cuDNN convolutions in TF32 (a 10-bit mantissa)
+    unless told otherwise, so without this the decoder's 3D convolutions of an "fp32" run on a GPU would not be
+    float32. Switches TF32 off for cuDNN and CUDA matmuls in this process for ``fp32`` on CUDA; leaves them alone
+    otherwise (bf16 autocast and CPUs do not read them)."""
+    if device.type == "cuda" and precision == "fp32":
+        torch.backends.cudnn.allow_tf32 = False
+        torch.backends.cuda.matmul.allow_tf32 = False
+
+
 def last_checkpoint(out) -> Path:
     return Path(out) / "checkpoints" / "last.pt"
 
@@ -203,6 +213,7 @@ def _run_steps(state: TrainingState, net, losses: LossComputer, loader: Iterable
     ``ckpt_path`` every ``checkpoint_every`` steps, at the last step and at the time limit."""
     cfg = state.cfg
     amp_dtype = autocast_dtype(device, cfg.precision)
+    float32_math(device, cfg.precision)
     if cfg.precision == "bf16" and amp_dtype is None and info.is_main:
         print("--precision bf16: this CPU has no native bf16 (AVX512-BF16 or AMX); training in float32",
               file=sys.stderr)
