@@ -7,8 +7,8 @@ checkpoint on one split.
 Shows whether a model that scores low at its stored τ has learned geometry whose σ lies on another scale (the
 2D rows), where its geometry IoU peaks, and which τ serves the objects of unseen scenes (the quickstart's τ,
 docs/training.md). The model runs once per keyframe with the smallest τ, so its occupancy holds the class of every
-voxel a τ can keep; each τ then keeps the voxels with σ ≥ τ, scored by the evaluation's own accumulator (``OccupancyMetric``). Every
-``--every``-th keyframe of the split is evaluated.
+voxel a τ can keep; each τ then keeps the voxels with σ ≥ τ, scored by the evaluation's own accumulator
+(``OccupancyMetric``). Every ``--every``-th keyframe of the split is evaluated.
 """
 from __future__ import annotations
 
@@ -46,9 +46,9 @@ def main() -> None:
     stored = model.cfg.threshold
     model.cfg = replace(model.cfg, threshold=min(TAUS))    # every voxel a τ can keep gets its class; τ applied below
     metrics = [OccupancyMetric() for _ in TAUS]
-    for _, _, classes_all, density, labels in predictions(samples, TorchPredictor(model)):
+    for _, _, occupancy, density, labels in predictions(samples, TorchPredictor(model)):
         for metric, tau in zip(metrics, TAUS):
-            metric.update(np.where(density >= tau, classes_all, FREE).astype(np.uint8), labels.semantics,
+            metric.update(np.where(density >= tau, occupancy, FREE).astype(np.uint8), labels.semantics,
                           labels.mask_camera)
     rows = {"geometry IoU %": [], "mIoU %": [], **{f"{c} IoU %": [] for c in classes}}
     for metric in metrics:

@@ -203,29 +203,34 @@ def test_free_prior_charges_every_voxel_by_its_opacity():
 
 def test_voxel_weighting_weighs_each_voxel_by_its_label():
     """--voxel-weighting: BCE × w(label) before the mean, by hand: σ 0.8 at a car voxel (w 5), 0.3 at a free one (w 1)
-    → (−5·log 0.8 − log 0.7) / 2; the labels come from voxel_targets, masked like the targets."""
+    → (−5·log 0.8 − log 0.7) / 2; the loss computer reads the labels from "occ_semantics" at the rows the targets
+    keep, masked like the targets."""
+    from occflownet.model.presets import get_preset
+    from occflownet.train.step import LossComputer
+
     density = torch.tensor([0.8, 0.3])
     gt = torch.tensor([4, 17], dtype=torch.uint8).view(2, 1, 1)
-    every = voxel_targets(gt)
-    assert every["voxel_labels"].tolist() == [4, 17]
     weights = torch.ones(NUM_CLASSES + 1)
     weights[4] = 5.0
-    assert voxel_density_loss(density, every["voxel_occupied"], every["voxel_labels"], weights).item() == \
+    every = voxel_targets(gt)
+    assert voxel_density_loss(density, every["voxel_occupied"], torch.tensor([4, 17]), weights).item() == \
         pytest.approx(-(5 * math.log(0.8) + math.log(0.7)) / 2, rel=1e-6)
-    masked = voxel_targets(gt, torch.tensor([False, True]).view(2, 1, 1))
-    assert masked["voxel_labels"].tolist() == [17]
     with pytest.raises(ValueError, match="weighting needs"):
         voxel_density_loss(density, every["voxel_occupied"], None, weights)
     with pytest.raises(ValueError, match="needs the voxel_weights"):   # the option without its weights
         _computer(supervision="3d", voxel_weighting="sqrt-balanced")
-    from occflownet.model.presets import get_preset
-    from occflownet.train.step import LossComputer
-
+    outputs = {"density": density.view(1, 2, 1, 1), "logits": torch.zeros(1, 2, 1, 1, NUM_CLASSES)}
+    cpu = torch.device("cpu")
     losses = LossComputer(TrainConfig(supervision="3d", voxel_weighting="sqrt-balanced", depth_loss=False),
                           get_preset("tiny"), None, voxel_weights=weights)
-    outputs = {"density": density.view(1, 2, 1, 1), "logits": torch.zeros(1, 2, 1, 1, NUM_CLASSES)}
-    terms = losses(outputs, every, torch.device("cpu"))
-    assert float(terms["voxel_density"]) == pytest.approx(-(5 * math.log(0.8) + math.log(0.7)) / 2, rel=1e-6)
+    batch = {**every, "occ_semantics": gt[None]}
+    assert losses.inputs(outputs, batch, cpu)["voxel_labels"].tolist() == [4, 17]
+    assert float(losses(outputs, batch, cpu)["voxel_density"]) == \
+        pytest.approx(-(5 * math.log(0.8) + math.log(0.7)) / 2, rel=1e-6)
+    masked = {**voxel_targets(gt, torch.tensor([False, True]).view(2, 1, 1)), "occ_semantics": gt[None]}
+    masked_losses = LossComputer(TrainConfig(supervision="3d", voxel_weighting="sqrt-balanced", depth_loss=False,
+                                             voxel_mask=True), get_preset("tiny"), None, voxel_weights=weights)
+    assert masked_losses.inputs(outputs, masked, cpu)["voxel_labels"].tolist() == [17]
 
 
 def test_free_terms_ramp_in_linearly_over_free_ramp_steps():

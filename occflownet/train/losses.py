@@ -195,7 +195,6 @@ def voxel_targets(semantics_gt: torch.Tensor, mask: torch.Tensor | None = None) 
 
     - "voxel_rows" int64 [K]: the kept voxels (only with a mask; without one every voxel is kept, in row order);
     - "voxel_occupied" float32 [K] (or [X·Y·Z]): the density BCE's targets, 1 where the label is occupied;
-    - "voxel_labels" uint8 [K] (or [X·Y·Z]): their labels (17 = free), for ``voxel_weights``;
     - "occupied_rows" int64 [K'], "occupied_labels" int64 [K']: the kept occupied voxels and their classes.
 
     The data loader adds them to each 3D sample (``occflownet.train.dataset``; ``collate`` offsets the rows by the
@@ -214,11 +213,9 @@ def voxel_targets(semantics_gt: torch.Tensor, mask: torch.Tensor | None = None) 
         keep = mask.bool().reshape(-1)
         out["voxel_rows"] = torch.nonzero(keep).reshape(-1)
         out["voxel_occupied"] = occupied[keep].float()
-        out["voxel_labels"] = labels[keep].to(torch.uint8)
         occupied = occupied & keep
     else:
         out["voxel_occupied"] = occupied.float()
-        out["voxel_labels"] = labels.to(torch.uint8)
     out["occupied_rows"] = torch.nonzero(occupied).reshape(-1)
     out["occupied_labels"] = labels[occupied]
     return out
@@ -228,8 +225,8 @@ def voxel_density_loss(sigma: torch.Tensor, occupied: torch.Tensor, labels: torc
                        voxel_weights: torch.Tensor | None = None) -> torch.Tensor:
     """BCE(σ, occupied), mean over the supervised voxels: sigma [K] in [0, 1] (the density at the rows of
     :func:`voxel_targets`), occupied float [K] (its "voxel_occupied"); with voxel_weights [18] (None: unweighted, the
-    official) each voxel's BCE is multiplied by the weight of its label, labels [K] (its "voxel_labels", 17 = free)
-    before the mean. K = 0 gives 0 (graph kept)."""
+    official) each voxel's BCE is multiplied by the weight of its label, labels [K] (17 = free; the loss computer
+    reads them from the labels at the rows of :func:`voxel_targets`) before the mean. K = 0 gives 0 (graph kept)."""
     if sigma.shape != occupied.shape or sigma.dim() != 1:
         raise ValueError(f"sigma and occupied must both be [K], got {tuple(sigma.shape)} and {tuple(occupied.shape)}")
     if not sigma.numel():

@@ -72,7 +72,8 @@ class LossComputer:
         - model outputs as float32: "density" [B, X, Y, Z], "logits" [B, X, Y, Z, 17], "depth_prob" [B, N, D, h, w];
           "feature_intrinsics" [B, N, 3, 3]; "voxel_sigma" [K] and "occupied_logits" [K', 17], σ and the logits at
           the batch's "voxel_rows" (every voxel without) and "occupied_rows" (the model gave them at those rows
-          when :meth:`head_rows` asked it to, else they are picked from the grid);
+          when :meth:`head_rows` asked it to, else they are picked from the grid); "voxel_labels" [K], the
+          labels of "occ_semantics" at "voxel_rows";
         - renderings (:meth:`renderings`): "rendered", "free_opacity" [F], "before_opacity" [S];
         - constants: "class_weights" [17] or None, "voxel_weights" [18] or None, "depth_bins" [D];
         - every other name is a batch field, moved to ``device`` ("ray_depths" [R], "ray_labels" [R], "cam2ego"
@@ -85,6 +86,9 @@ class LossComputer:
         if "voxel_sigma" in self.needs:
             found["voxel_sigma"] = self._at_rows(density.reshape(-1), batch.get("voxel_rows"), density.dim() == 1,
                                                  device)
+        if "voxel_labels" in self.needs:     # the labels (17 = free) of the voxels "voxel_sigma" holds
+            found["voxel_labels"] = self._at_rows(batch["occ_semantics"].to(device).reshape(-1),
+                                                  batch.get("voxel_rows"), False, device)
         if "occupied_logits" in self.needs:
             found["occupied_logits"] = self._at_rows(logits.reshape(-1, logits.shape[-1]), batch["occupied_rows"],
                                                      logits.dim() == 2, device)
