@@ -141,6 +141,7 @@ def test_voxel_losses_by_hand_with_mask():
     ({"free_beyond_grid": True, "free_before_point": True, "free_space_weight": 0.0},
      ["render_depth", "render_semantics", "lidar_depth"]),
     ({"free_beyond_grid": True, "depth_loss": False}, ["render_depth", "render_semantics", "free_space"]),
+    ({"point_semantics_weight": 0.5}, ["render_depth", "render_semantics", "point_semantics", "lidar_depth"]),
 ])
 def test_the_terms_are_chosen_from_the_configuration(overrides, names):
     terms = loss_terms(TrainConfig(**overrides))
@@ -148,7 +149,7 @@ def test_the_terms_are_chosen_from_the_configuration(overrides, names):
     weights = {t.name: t.weight for t in terms}
     expected = {"render_depth": 0.05 if overrides.get("depth_loss", True) else 0.0, "render_semantics": 1.0,
                 "voxel_density": 1.0, "voxel_semantics": 1.0, "lidar_depth": 0.05, "free_space": 1.0,
-                "free_before": 1.0, "free_prior": 0.1}
+                "free_before": 1.0, "free_prior": 0.1, "point_semantics": 0.5}
     assert weights == {name: expected[name] for name in names}
 
 
@@ -367,6 +368,37 @@ def test_the_loss_computer_renders_the_rays_of_its_terms(sigma):
         assert terms["free_space"] == pytest.approx(0.05 * (40.0 - 0.05), rel=3e-3)
         stretches = [0.05 * (0.8 * depth - 0.6 - 0.05) for depth in (10.0, 20.0)]     # to 0.8 · depth - 0.6 m
         assert terms["free_before"] == pytest.approx(np.mean(stretches), rel=3e-3)
+
+
+def test_point_semantics_reads_the_voxel_that_holds_each_point():
+    """--point-semantics-weight: the CE of the logits of the voxel holding each ray's point, in the logits volume of
+    the ray's frame; points outside the grid are left out. Rays from (0, 0, 1): +x 10 m → voxel (125, 100, 5),
+    +y 20 m → (100, 150, 5), -x 50 m → outside. Logits: 5 for class 0 at the first voxel (label 0), 5 for class 3 at
+    the second (label 1), 0 elsewhere."""
+    from occflownet.occ3d import GRID
+    from occflownet.train.step import FrameVolumes
+
+    losses = _computer(point_semantics_weight=0.5, depth_loss=False, horizon=0)
+    assert "point_logits" in losses.needs and "point_semantics" in [t.name for t in losses.terms]
+    logits = torch.zeros(1, *GRID.shape, NUM_CLASSES)
+    logits[0, 125, 100, 5, 0] = 5.0
+    logits[0, 100, 150, 5, 3] = 5.0
+    batch = _ray_batch()
+    batch.update(ray_origins=torch.tensor([[0.0, 0.0, 1.0]] * 3),
+                 ray_directions=torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
+                 ray_depths=torch.tensor([10.0, 20.0, 50.0]), ray_labels=torch.tensor([0, 1, 2]),
+                 ray_volume=torch.zeros(3, dtype=torch.long))
+    cpu = torch.device("cpu")
+    # two frame volumes reading one logits volume: the rays of frame 1 read it too
+    volumes = FrameVolumes(torch.zeros(2, *GRID.shape), logits, logits_index=torch.tensor([0, 0]))
+    picked, labels = losses.point_logits(volumes, {**batch, "ray_volume": torch.tensor([1, 0, 1])}, cpu)
+    assert labels.tolist() == [0, 1] and picked[0, 0] == 5.0 and picked[1, 3] == 5.0 and picked.sum() == 10.0
+    terms = losses({"density": torch.zeros(1, *GRID.shape), "logits": logits}, batch, cpu,
+                   torch.Generator().manual_seed(0))
+    expected = 0.5 * (-math.log(math.exp(5) / (math.exp(5) + 16)) - math.log(1 / (math.exp(5) + 16))) / 2
+    assert float(terms["point_semantics"]) == pytest.approx(expected, rel=1e-5)
+    with pytest.raises(ValueError, match="point_semantics_weight"):
+        TrainConfig(point_semantics_weight=0.5, supervision="3d")
 
 
 def _sigmoid_slope(logits: list[float]) -> list[float]:

@@ -17,6 +17,10 @@ and ``occupied_logits``: σ and the logits at the supervised voxels), renderings
   mean 1), used as given; None = all ones. ``render_semantics="normalized"`` (beyond the paper) takes the CE of the
   mixture divided by its weight sum: the official CE on the raw mixture Σ w_i s_i also falls when the ray's
   opacity grows anywhere along it, which rewards density in front of the surface;
+- "point_semantics" (``point_semantics_weight`` > 0, beyond the paper): mean over the rays whose LiDAR point lies
+  in the grid of ω(label)·CE(logits of the voxel holding the point, in the ray's frame volume; label), weight
+  ``point_semantics_weight``: the rendered mixture spreads a ray that grazes the ground over metres of voxels, so
+  neighbouring rays of two classes blur their boundary; this term names the one voxel each label belongs to;
 - "voxel_density", "voxel_semantics" (3D supervision, paper section 3.3): BCE on σ over all voxels (target
   occupied = label != 17) and CE on the semantic logits of the occupied voxels, weight 1.0 each; with
   ``voxel_mask`` both only inside ``mask_camera`` (:func:`voxel_targets` says which voxels);
@@ -80,6 +84,9 @@ def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
                            render_depth_loss),
                   LossTerm("render_semantics", SEMANTIC_WEIGHT, ("rendered", "ray_labels", "class_weights"),
                            semantics)]
+    if cfg.uses_2d and cfg.point_semantics_weight > 0:
+        terms.append(LossTerm("point_semantics", cfg.point_semantics_weight,
+                              ("point_logits", "point_labels", "class_weights"), point_semantics_loss))
     if cfg.uses_3d:
         weighted = ("voxel_labels", "voxel_weights") if cfg.voxel_weighting != "none" else ()
         terms += [LossTerm("voxel_density", VOXEL_WEIGHT, ("voxel_sigma", "voxel_occupied", *weighted),
@@ -164,6 +171,16 @@ def normalized_semantics_loss(rendered, labels_gt: torch.Tensor,
     labels = _ray_labels(rendered, labels_gt)
     return _semantics_ce(rendered.semantics / rendered.weight_sum.clamp(min=1e-4).unsqueeze(-1), labels,
                          class_weights)
+
+
+def point_semantics_loss(point_logits: torch.Tensor, point_labels: torch.Tensor,
+                         class_weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean over points of ω(label)·CE(point_logits [P, 17], point_labels [P] 0..16), unweighted: the logits of the
+    voxel holding each ray's LiDAR point (``LossComputer.point_logits``). P = 0 gives 0 (graph kept)."""
+    if point_logits.dim() != 2 or point_logits.shape[1] != NUM_CLASSES or point_labels.shape != point_logits.shape[:1]:
+        raise ValueError(f"point_logits must be [P, {NUM_CLASSES}] and point_labels [P], got "
+                         f"{tuple(point_logits.shape)} and {tuple(point_labels.shape)}")
+    return _semantics_ce(point_logits, point_labels.long(), class_weights)
 
 
 def free_space_loss(opacity: torch.Tensor) -> torch.Tensor:

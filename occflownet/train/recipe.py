@@ -57,6 +57,10 @@ class TrainConfig:
     render_depth_weight: float = option(0.05, "weight of the rendered-depth MSE (0.05 = official)")
     render_semantics: str = option("mixture", "CE on the rendered logit mixture (official) or on it divided by the "
                                               "ray's weight sum", choices=RENDER_SEMANTICS)
+    point_semantics_weight: float = option(0.0, "weight of the CE of the semantic logits of the voxel that holds each "
+                                                "ray's LiDAR point (in its frame's volume) against the point's label: "
+                                                "sharp class boundaries where the rendered mixture spreads a grazing "
+                                                "ray over several voxels (0: off, official; beyond the paper)")
     free_prior_weight: float = option(0.0, "weight of the mean -log(1 - sigma) over all voxels (0: off, official)")
     density_logit_clip: float = option(0.0, "rendering reads sigma = sigmoid(clamp(logit, -M, M)) with the "
                                              "gradient passed straight through the clamp, so that a voxel whose "
@@ -148,9 +152,12 @@ class TrainConfig:
         if self.sigma_is not in SIGMA_READINGS or self.render_semantics not in RENDER_SEMANTICS:
             raise ValueError(f"sigma_is must be one of {SIGMA_READINGS} and render_semantics one of "
                              f"{RENDER_SEMANTICS}, got {self.sigma_is!r}, {self.render_semantics!r}")
-        if min(self.render_depth_weight, self.free_prior_weight, self.density_logit_clip, self.density_grad_floor) < 0:
-            raise ValueError("render_depth_weight, free_prior_weight, density_logit_clip and density_grad_floor must "
-                             "be >= 0")
+        if min(self.render_depth_weight, self.free_prior_weight, self.density_logit_clip, self.density_grad_floor,
+               self.point_semantics_weight) < 0:
+            raise ValueError("render_depth_weight, free_prior_weight, density_logit_clip, density_grad_floor and "
+                             "point_semantics_weight must be >= 0")
+        if self.point_semantics_weight > 0 and not self.uses_2d:
+            raise ValueError("point_semantics_weight reads the rays' points: it needs supervision '2d' or '2d+3d'")
         if self.free_stretch not in FREE_STRETCH_RULES:
             raise ValueError(f"free_stretch must be one of {FREE_STRETCH_RULES}, got {self.free_stretch!r}")
         if self.free_rays_per_step < 1 or self.free_space_weight < 0 or self.free_ramp_steps < 0:

@@ -74,7 +74,8 @@ class LossComputer:
           the batch's "voxel_rows" (every voxel without) and "occupied_rows" (the model gave them at those rows
           when :meth:`head_rows` asked it to, else they are picked from the grid); "voxel_labels" [K], the
           labels of "occ_semantics" at "voxel_rows";
-        - renderings (:meth:`renderings`): "rendered", "free_opacity" [F], "before_opacity" [S];
+        - renderings (:meth:`renderings`): "rendered", "free_opacity" [F], "before_opacity" [S]; "point_logits"
+          [P, 17] and "point_labels" [P] (:meth:`point_logits`);
         - constants: "class_weights" [17] or None, "voxel_weights" [18] or None, "depth_bins" [D];
         - every other name is a batch field, moved to ``device`` ("ray_depths" [R], "ray_labels" [R], "cam2ego"
           [B, N, 4, 4], "depth_points" B × [P_b, 3], "occ_semantics" [B, X, Y, Z], "occ_mask" [B, X, Y, Z]).
@@ -94,8 +95,11 @@ class LossComputer:
                                                      logits.dim() == 2, device)
         if "depth_prob" in self.needs:
             found.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"])
-        if self.needs & set(RENDERINGS):
-            found.update(self.renderings(self.render_density(density, outputs), logits, batch, device, generator))
+        if self.needs & {*RENDERINGS, "point_logits"}:
+            volumes = self.volumes(self.render_density(density, outputs), logits, batch, device)
+            found.update(self.renderings(volumes, batch, device, generator))
+            if "point_logits" in self.needs:
+                found["point_logits"], found["point_labels"] = self.point_logits(volumes, batch, device)
         missing = sorted(self.needs - found.keys() - batch.keys())
         if missing:
             users = [term.name for term in self.terms if set(term.needs) & set(missing)]
@@ -124,15 +128,12 @@ class LossComputer:
         ``given`` them at those rows already."""
         return values if given or rows is None else values[rows.to(device)]
 
-    def renderings(self, density: torch.Tensor, logits: torch.Tensor, batch: dict, device,
+    def renderings(self, volumes: "FrameVolumes", batch: dict, device,
                    generator: torch.Generator | None = None) -> dict:
         """Those of :data:`RENDERINGS` the terms need, through the per-frame volumes (:meth:`volumes`), in that
         order: "rendered" (``RenderOutput`` of the batch's rays), "free_opacity" (:meth:`_free_opacity`),
         "before_opacity" (:meth:`_before_opacity`)."""
         wanted = [name for name in RENDERINGS if name in self.needs]
-        if not wanted:
-            return {}
-        volumes = self.volumes(density, logits, batch, device)
         made = {}
         if "rendered" in wanted:
             made["rendered"] = render_rays(*volumes.grids, batch["ray_origins"].to(device),
@@ -158,6 +159,22 @@ class LossComputer:
             # disocclude each sample's volume once, then give its copy to the temporal volumes
             dens = torch.where(temporal[:, None, None, None], disocclude(density, logits)[source], dens)
         return FrameVolumes(dens, logits, source)   # the frames of a sample read its logits: no copy of them
+
+    def point_logits(self, volumes: "FrameVolumes", batch: dict, device) -> tuple[torch.Tensor, torch.Tensor]:
+        """(logits [P, 17], labels [P]) of the batch's rays whose LiDAR point (origin + depth · direction, current
+        ego frame) lies inside the grid: the logits of the voxel holding the point in the ray's frame volume (with
+        flow the moved one), and the ray's label."""
+        grid = self.render_cfg.grid
+        points = batch["ray_origins"].to(device) + batch["ray_depths"].to(device)[:, None] * \
+            batch["ray_directions"].to(device)
+        ijk = torch.floor((points - points.new_tensor(grid.lower)) / grid.voxel_size).long()
+        shape = torch.tensor(grid.shape, device=device)
+        inside = ((ijk >= 0) & (ijk < shape)).all(dim=1)
+        volume = batch["ray_volume"].to(device)[inside]
+        if volumes.logits_index is not None:
+            volume = volumes.logits_index[volume]
+        i, j, k = ijk[inside].unbind(1)
+        return volumes.logits[volume, i, j, k], batch["ray_labels"].to(device)[inside]
 
     def _free_opacity(self, volumes: "FrameVolumes", batch: dict, device, generator) -> torch.Tensor:
         """Opacity [F] of the batch's free rays (free-space beams, camera rays beyond the grid) through their
