@@ -109,7 +109,7 @@ def _other_value(f: dataclasses.Field, value):
         return 7
     if f.name in ("lr", "ema_decay", "threshold", "time_limit_s", "density_scale", "free_space_weight",
                   "weight_decay", "grad_clip", "render_depth_weight", "free_prior_weight", "density_logit_clip",
-                  "density_grad_floor"):
+                  "density_grad_floor", "point_semantics_weight", "point_density_weight"):
         return 0.125
     if isinstance(value, int):
         return value + 3

@@ -11,8 +11,8 @@ import torch
 
 from occflownet.occ3d import NUM_CLASSES
 from occflownet.train.losses import (LossTerm, free_prior_loss, free_space_loss, lidar_depth_loss, lidar_depth_targets,
-                                     loss_terms, normalized_semantics_loss, render_depth_loss, render_semantics_loss,
-                                     voxel_density_loss, voxel_semantics_loss, voxel_targets)
+                                     loss_terms, normalized_semantics_loss, point_density_loss, render_depth_loss,
+                                     render_semantics_loss, voxel_density_loss, voxel_semantics_loss, voxel_targets)
 from occflownet.train.recipe import TrainConfig
 
 LOG17 = math.log(NUM_CLASSES)
@@ -391,14 +391,36 @@ def test_point_semantics_reads_the_voxel_that_holds_each_point():
     cpu = torch.device("cpu")
     # two frame volumes reading one logits volume: the rays of frame 1 read it too
     volumes = FrameVolumes(torch.zeros(2, *GRID.shape), logits, logits_index=torch.tensor([0, 0]))
-    picked, labels = losses.point_logits(volumes, {**batch, "ray_volume": torch.tensor([1, 0, 1])}, cpu)
-    assert labels.tolist() == [0, 1] and picked[0, 0] == 5.0 and picked[1, 3] == 5.0 and picked.sum() == 10.0
+    volumes.density[1, 125, 100, 5] = 0.25
+    picked = losses.point_values(volumes, {**batch, "ray_volume": torch.tensor([1, 0, 1])}, cpu)
+    assert picked["point_labels"].tolist() == [0, 1] and picked["point_sigma"].tolist() == [0.25, 0.0]
+    logits_at = picked["point_logits"]
+    assert logits_at[0, 0] == 5.0 and logits_at[1, 3] == 5.0 and logits_at.sum() == 10.0
     terms = losses({"density": torch.zeros(1, *GRID.shape), "logits": logits}, batch, cpu,
                    torch.Generator().manual_seed(0))
     expected = 0.5 * (-math.log(math.exp(5) / (math.exp(5) + 16)) - math.log(1 / (math.exp(5) + 16))) / 2
     assert float(terms["point_semantics"]) == pytest.approx(expected, rel=1e-5)
     with pytest.raises(ValueError, match="point_semantics_weight"):
         TrainConfig(point_semantics_weight=0.5, supervision="3d")
+
+
+def test_point_density_asks_the_voxel_of_each_point_to_be_occupied():
+    """--point-density-weight: -log σ of the voxel holding each in-grid point (rays as in the test above; σ 0.5 at
+    the first point's voxel, 0.1 elsewhere), so a fully dense voxel costs nothing."""
+    from occflownet.occ3d import GRID
+
+    losses = _computer(point_density_weight=2.0, depth_loss=False, horizon=0)
+    assert [t.name for t in losses.terms] == ["render_depth", "render_semantics", "point_density"]
+    density = torch.full((1, *GRID.shape), 0.1)
+    density[0, 125, 100, 5] = 0.5
+    batch = {**_ray_batch(), "ray_origins": torch.tensor([[0.0, 0.0, 1.0]] * 3),
+             "ray_directions": torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
+             "ray_depths": torch.tensor([10.0, 20.0, 50.0]), "ray_labels": torch.tensor([0, 1, 2]),
+             "ray_volume": torch.zeros(3, dtype=torch.long)}
+    terms = losses({"density": density, "logits": torch.zeros(1, *GRID.shape, NUM_CLASSES)}, batch,
+                   torch.device("cpu"), torch.Generator().manual_seed(0))
+    assert float(terms["point_density"]) == pytest.approx(2.0 * -(math.log(0.5) + math.log(0.1)) / 2, rel=1e-5)
+    assert float(point_density_loss(torch.ones(3))) == 0.0
 
 
 def _sigmoid_slope(logits: list[float]) -> list[float]:

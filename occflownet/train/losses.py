@@ -21,6 +21,9 @@ and ``occupied_logits``: σ and the logits at the supervised voxels), renderings
   in the grid of ω(label)·CE(logits of the voxel holding the point, in the ray's frame volume; label), weight
   ``point_semantics_weight``: the rendered mixture spreads a ray that grazes the ground over metres of voxels, so
   neighbouring rays of two classes blur their boundary; this term names the one voxel each label belongs to;
+- "point_density" (``point_density_weight`` > 0, beyond the paper): mean over the same points of -log σ of the voxel
+  holding the point (in the ray's frame volume), weight ``point_density_weight``: with σ ≤ 1 per metre the rendered
+  depth is met by light spread over metres around the point, leaving the labelled voxel itself half dense;
 - "voxel_density", "voxel_semantics" (3D supervision, paper section 3.3): BCE on σ over all voxels (target
   occupied = label != 17) and CE on the semantic logits of the occupied voxels, weight 1.0 each; with
   ``voxel_mask`` both only inside ``mask_camera`` (:func:`voxel_targets` says which voxels);
@@ -87,6 +90,8 @@ def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
     if cfg.uses_2d and cfg.point_semantics_weight > 0:
         terms.append(LossTerm("point_semantics", cfg.point_semantics_weight,
                               ("point_logits", "point_labels", "class_weights"), point_semantics_loss))
+    if cfg.uses_2d and cfg.point_density_weight > 0:
+        terms.append(LossTerm("point_density", cfg.point_density_weight, ("point_sigma",), point_density_loss))
     if cfg.uses_3d:
         weighted = ("voxel_labels", "voxel_weights") if cfg.voxel_weighting != "none" else ()
         terms += [LossTerm("voxel_density", VOXEL_WEIGHT, ("voxel_sigma", "voxel_occupied", *weighted),
@@ -181,6 +186,16 @@ def point_semantics_loss(point_logits: torch.Tensor, point_labels: torch.Tensor,
         raise ValueError(f"point_logits must be [P, {NUM_CLASSES}] and point_labels [P], got "
                          f"{tuple(point_logits.shape)} and {tuple(point_labels.shape)}")
     return _semantics_ce(point_logits, point_labels.long(), class_weights)
+
+
+def point_density_loss(point_sigma: torch.Tensor) -> torch.Tensor:
+    """Mean over points of -log σ (clamped at 1e-4), point_sigma [P] in [0, 1]: σ of the voxel holding each ray's
+    LiDAR point (``LossComputer.point_logits``), unweighted. P = 0 gives 0 (graph kept)."""
+    if point_sigma.dim() != 1:
+        raise ValueError(f"point_sigma must be [P], got {tuple(point_sigma.shape)}")
+    if point_sigma.shape[0] == 0:
+        return point_sigma.sum()
+    return -torch.log(point_sigma.clamp(min=1e-4)).mean()
 
 
 def free_space_loss(opacity: torch.Tensor) -> torch.Tensor:

@@ -61,6 +61,10 @@ class TrainConfig:
                                                 "ray's LiDAR point (in its frame's volume) against the point's label: "
                                                 "sharp class boundaries where the rendered mixture spreads a grazing "
                                                 "ray over several voxels (0: off, official; beyond the paper)")
+    point_density_weight: float = option(0.0, "weight of -log(sigma) of the voxel that holds each ray's LiDAR point "
+                                              "(in its frame's volume): a return says its voxel is occupied, where "
+                                              "the rendered depth only asks for the light to stop near it on "
+                                              "average (0: off, official; beyond the paper)")
     free_prior_weight: float = option(0.0, "weight of the mean -log(1 - sigma) over all voxels (0: off, official)")
     density_logit_clip: float = option(0.0, "rendering reads sigma = sigmoid(clamp(logit, -M, M)) with the "
                                              "gradient passed straight through the clamp, so that a voxel whose "
@@ -153,11 +157,12 @@ class TrainConfig:
             raise ValueError(f"sigma_is must be one of {SIGMA_READINGS} and render_semantics one of "
                              f"{RENDER_SEMANTICS}, got {self.sigma_is!r}, {self.render_semantics!r}")
         if min(self.render_depth_weight, self.free_prior_weight, self.density_logit_clip, self.density_grad_floor,
-               self.point_semantics_weight) < 0:
-            raise ValueError("render_depth_weight, free_prior_weight, density_logit_clip, density_grad_floor and "
-                             "point_semantics_weight must be >= 0")
-        if self.point_semantics_weight > 0 and not self.uses_2d:
-            raise ValueError("point_semantics_weight reads the rays' points: it needs supervision '2d' or '2d+3d'")
+               self.point_semantics_weight, self.point_density_weight) < 0:
+            raise ValueError("render_depth_weight, free_prior_weight, density_logit_clip, density_grad_floor, "
+                             "point_semantics_weight and point_density_weight must be >= 0")
+        if max(self.point_semantics_weight, self.point_density_weight) > 0 and not self.uses_2d:
+            raise ValueError("point_semantics_weight and point_density_weight read the rays' points: they need "
+                             "supervision '2d' or '2d+3d'")
         if self.free_stretch not in FREE_STRETCH_RULES:
             raise ValueError(f"free_stretch must be one of {FREE_STRETCH_RULES}, got {self.free_stretch!r}")
         if self.free_rays_per_step < 1 or self.free_space_weight < 0 or self.free_ramp_steps < 0:

@@ -23,6 +23,7 @@ from occflownet.train.recipe import TrainConfig
 # The renderings a term may need, in the order they are made: each draws its render jitter from the step's
 # generator after the one before, so the order is part of what a step computes.
 RENDERINGS = ("rendered", "free_opacity", "before_opacity")
+POINT_INPUTS = ("point_logits", "point_labels", "point_sigma")   # at the voxels holding the rays' points
 
 
 class LossComputer:
@@ -74,8 +75,8 @@ class LossComputer:
           the batch's "voxel_rows" (every voxel without) and "occupied_rows" (the model gave them at those rows
           when :meth:`head_rows` asked it to, else they are picked from the grid); "voxel_labels" [K], the
           labels of "occ_semantics" at "voxel_rows";
-        - renderings (:meth:`renderings`): "rendered", "free_opacity" [F], "before_opacity" [S]; "point_logits"
-          [P, 17] and "point_labels" [P] (:meth:`point_logits`);
+        - renderings (:meth:`renderings`): "rendered", "free_opacity" [F], "before_opacity" [S]; at the rays'
+          points (:meth:`point_values`) "point_logits" [P, 17], "point_labels" [P], "point_sigma" [P];
         - constants: "class_weights" [17] or None, "voxel_weights" [18] or None, "depth_bins" [D];
         - every other name is a batch field, moved to ``device`` ("ray_depths" [R], "ray_labels" [R], "cam2ego"
           [B, N, 4, 4], "depth_points" B × [P_b, 3], "occ_semantics" [B, X, Y, Z], "occ_mask" [B, X, Y, Z]).
@@ -95,11 +96,11 @@ class LossComputer:
                                                      logits.dim() == 2, device)
         if "depth_prob" in self.needs:
             found.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"])
-        if self.needs & {*RENDERINGS, "point_logits"}:
+        if self.needs & {*RENDERINGS, *POINT_INPUTS}:
             volumes = self.volumes(self.render_density(density, outputs), logits, batch, device)
             found.update(self.renderings(volumes, batch, device, generator))
-            if "point_logits" in self.needs:
-                found["point_logits"], found["point_labels"] = self.point_logits(volumes, batch, device)
+            if self.needs & set(POINT_INPUTS):
+                found.update(self.point_values(volumes, batch, device))
         missing = sorted(self.needs - found.keys() - batch.keys())
         if missing:
             users = [term.name for term in self.terms if set(term.needs) & set(missing)]
@@ -160,10 +161,11 @@ class LossComputer:
             dens = torch.where(temporal[:, None, None, None], disocclude(density, logits)[source], dens)
         return FrameVolumes(dens, logits, source)   # the frames of a sample read its logits: no copy of them
 
-    def point_logits(self, volumes: "FrameVolumes", batch: dict, device) -> tuple[torch.Tensor, torch.Tensor]:
-        """(logits [P, 17], labels [P]) of the batch's rays whose LiDAR point (origin + depth · direction, current
-        ego frame) lies inside the grid: the logits of the voxel holding the point in the ray's frame volume (with
-        flow the moved one), and the ray's label."""
+    def point_values(self, volumes: "FrameVolumes", batch: dict, device) -> dict:
+        """:data:`POINT_INPUTS` of the batch's rays whose LiDAR point (origin + depth · direction, current ego frame)
+        lies inside the grid (P of them): "point_logits" [P, 17] and "point_sigma" [P], the logits and σ of the voxel
+        holding the point in the ray's frame volume (with flow the moved one), and "point_labels" [P], the rays'
+        labels."""
         grid = self.render_cfg.grid
         points = batch["ray_origins"].to(device) + batch["ray_depths"].to(device)[:, None] * \
             batch["ray_directions"].to(device)
@@ -171,10 +173,10 @@ class LossComputer:
         shape = torch.tensor(grid.shape, device=device)
         inside = ((ijk >= 0) & (ijk < shape)).all(dim=1)
         volume = batch["ray_volume"].to(device)[inside]
-        if volumes.logits_index is not None:
-            volume = volumes.logits_index[volume]
+        logits_volume = volume if volumes.logits_index is None else volumes.logits_index[volume]
         i, j, k = ijk[inside].unbind(1)
-        return volumes.logits[volume, i, j, k], batch["ray_labels"].to(device)[inside]
+        return {"point_logits": volumes.logits[logits_volume, i, j, k], "point_sigma": volumes.density[volume, i, j, k],
+                "point_labels": batch["ray_labels"].to(device)[inside]}
 
     def _free_opacity(self, volumes: "FrameVolumes", batch: dict, device, generator) -> torch.Tensor:
         """Opacity [F] of the batch's free rays (free-space beams, camera rays beyond the grid) through their
