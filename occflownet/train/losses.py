@@ -181,7 +181,7 @@ def normalized_semantics_loss(rendered, labels_gt: torch.Tensor,
 def point_semantics_loss(point_logits: torch.Tensor, point_labels: torch.Tensor,
                          class_weights: torch.Tensor | None = None) -> torch.Tensor:
     """Mean over points of ω(label)·CE(point_logits [P, 17], point_labels [P] 0..16), unweighted: the logits of the
-    voxel holding each ray's LiDAR point (``LossComputer.point_logits``). P = 0 gives 0 (graph kept)."""
+    voxel holding each ray's LiDAR point (``LossComputer.point_values``). P = 0 gives 0 (graph kept)."""
     if point_logits.dim() != 2 or point_logits.shape[1] != NUM_CLASSES or point_labels.shape != point_logits.shape[:1]:
         raise ValueError(f"point_logits must be [P, {NUM_CLASSES}] and point_labels [P], got "
                          f"{tuple(point_logits.shape)} and {tuple(point_labels.shape)}")
@@ -190,7 +190,7 @@ def point_semantics_loss(point_logits: torch.Tensor, point_labels: torch.Tensor,
 
 def point_density_loss(point_sigma: torch.Tensor) -> torch.Tensor:
     """Mean over points of -log σ (clamped at 1e-4), point_sigma [P] in [0, 1]: σ of the voxel holding each ray's
-    LiDAR point (``LossComputer.point_logits``), unweighted. P = 0 gives 0 (graph kept)."""
+    LiDAR point (``LossComputer.point_values``), unweighted. P = 0 gives 0 (graph kept)."""
     if point_sigma.dim() != 1:
         raise ValueError(f"point_sigma must be [P], got {tuple(point_sigma.shape)}")
     if point_sigma.shape[0] == 0:
