@@ -31,8 +31,13 @@ class Grid:
         """Voxel centre coordinates along one axis, float64 [shape[axis]]."""
         return self.lower[axis] + (np.arange(self.shape[axis]) + 0.5) * self.voxel_size
 
-    def index_of(self, points: np.ndarray) -> np.ndarray:
-        """Ego-frame points [..., 3] → integer voxel indices [..., 3] (may lie outside the grid)."""
+    def index_of(self, points):
+        """Ego-frame points [..., 3] → integer voxel indices [..., 3] (may lie outside the grid):
+        floor((p − lower) / voxel_size), the one rule for which voxel holds a point. numpy in → int64 numpy
+        (computed in float64); a torch tensor in → an int64 tensor on its device, computed in the tensor's own dtype
+        (the exported model's float32 arithmetic), without this module importing torch."""
+        if hasattr(points, "new_tensor"):  # a torch.Tensor
+            return ((points - points.new_tensor(self.lower)) / self.voxel_size).floor().long()
         return np.floor((np.asarray(points) - np.asarray(self.lower)) / self.voxel_size).astype(np.int64)
 
     def contains(self, points: np.ndarray) -> np.ndarray:

@@ -1,4 +1,5 @@
 import numpy as np
+import torch
 
 from occflownet import geometry, occ3d
 from occflownet.occ3d import GRID
@@ -19,6 +20,19 @@ def test_index_of_voxel_centres_round_trip():
     assert np.array_equal(GRID.index_of(centres), ijk)
     assert GRID.contains(centres).all()
     assert not GRID.contains(np.array([[40.0, 0, 0], [0, 0, -1.01], [0, 0, 5.4]])).any()
+
+
+def test_index_of_torch_tensors_follow_the_same_rule():
+    ijk = np.array([[0, 0, 0], [199, 199, 15], [100, 37, 4]])
+    centres = np.asarray(GRID.lower) + (ijk + 0.5) * GRID.voxel_size
+    for dtype in (torch.float32, torch.float64):
+        got = GRID.index_of(torch.tensor(centres, dtype=dtype))
+        assert got.dtype == torch.int64 and np.array_equal(got.numpy(), ijk)
+    # just below a lower face, the upper face, and outside the grid on both sides (indices may leave the grid)
+    edges = np.array([[-40.0, -40.0, -1.0], [-40.01, 39.99, 5.4], [40.0, 0.0, -1.2]])
+    expected = np.array([[0, 0, 0], [-1, 199, 16], [200, 100, -1]])
+    assert np.array_equal(GRID.index_of(edges), expected)
+    assert np.array_equal(GRID.index_of(torch.tensor(edges, dtype=torch.float64)).numpy(), expected)
 
 
 def test_class_table():

@@ -2,7 +2,7 @@
 
 Geometry is computed inside the graph from the runtime ``feature_intrinsics`` and ``cam2ego``:
 feature cell (u, v) with depth bin centre d (camera-frame z-depth) is the camera point ``d · K_f⁻¹ [u, v, 1]``,
-moved into the ego frame by ``cam2ego``, and falls into voxel ``floor((p - GRID.lower) / GRID.voxel_size)``.
+moved into the ego frame by ``cam2ego``, and falls into voxel ``GRID.index_of(p)`` = ``floor((p - GRID.lower) / GRID.voxel_size)``.
 Points outside the grid contribute nothing (they are routed to a discarded dump row).
 
 Pooling is a scatter-add (``index_add`` → ONNX ScatterND with ``reduction="add"``, correct for repeated indices).
@@ -73,10 +73,9 @@ def voxel_rows(points: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.T
     block layout [B·X/s·Y/s·Z/s·s³]. Points outside the grid (or not finite) get row 0 and valid = 0, so that
     multiplying their features by ``valid`` makes them contribute nothing.
     """
-    lower = torch.tensor(GRID.lower, dtype=torch.float32, device=points.device)
     finite = torch.all(torch.isfinite(points), dim=-1)
     points = torch.where(finite[..., None], points, torch.full_like(points, -1e4))
-    index = torch.floor((points - lower) / GRID.voxel_size).to(torch.int64)         # [B, ..., 3]
+    index = GRID.index_of(points)                                                   # [B, ..., 3] int64
     shape = torch.tensor(GRID.shape, dtype=torch.int64, device=points.device)
     valid = torch.all((index >= 0) & (index < shape), dim=-1)                       # [B, ...]
     index = torch.where(valid[..., None], index, torch.zeros_like(index))

@@ -247,7 +247,7 @@ def _warp_plan(rows: torch.Tensor, source: torch.Tensor, moves: PackedMoves, mov
     T = moves.transforms[box]
     moved = (T[:, :3, :3] @ centres[:, :, None])[:, :, 0] + T[:, :3, 3]  # [S, 3] ego frame
     if mover == "nearest":
-        tgt = torch.floor((moved - lower) / grid.voxel_size).long()[:, None, :]  # [S, 1, 3]
+        tgt = grid.index_of(moved)[:, None, :]  # [S, 1, 3]
         weight = torch.ones(tgt.shape[:2], dtype=torch.float64, device=device)
     else:
         tgt, weight = idw_neighbours(moved, grid)  # [S, 8, 3], [S, 8]

@@ -169,7 +169,7 @@ class LossComputer:
         grid = self.render_cfg.grid
         points = batch["ray_origins"].to(device) + batch["ray_depths"].to(device)[:, None] * \
             batch["ray_directions"].to(device)
-        ijk = torch.floor((points - points.new_tensor(grid.lower)) / grid.voxel_size).long()
+        ijk = grid.index_of(points)
         shape = torch.tensor(grid.shape, device=device)
         inside = ((ijk >= 0) & (ijk < shape)).all(dim=1)
         volume = batch["ray_volume"].to(device)[inside]
