@@ -2,7 +2,8 @@
 
 Geometry is computed inside the graph from the runtime ``feature_intrinsics`` and ``cam2ego``:
 feature cell (u, v) with depth bin centre d (camera-frame z-depth) is the camera point ``d · K_f⁻¹ [u, v, 1]``,
-moved into the ego frame by ``cam2ego``, and falls into voxel ``GRID.index_of(p)`` = ``floor((p - GRID.lower) / GRID.voxel_size)``.
+moved into the ego frame by ``cam2ego``, and falls into voxel ``GRID.index_of(p)``
+(``floor((p - GRID.lower) / GRID.voxel_size)``).
 Points outside the grid contribute nothing (they are routed to a discarded dump row).
 
 Pooling is a scatter-add (``index_add`` → ONNX ScatterND with ``reduction="add"``, correct for repeated indices).
