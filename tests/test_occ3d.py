@@ -28,7 +28,7 @@ def test_index_of_torch_tensors_follow_the_same_rule():
     for dtype in (torch.float32, torch.float64):
         got = GRID.index_of(torch.tensor(centres, dtype=dtype))
         assert got.dtype == torch.int64 and np.array_equal(got.numpy(), ijk)
-    # just below a lower face, the upper face, and outside the grid on both sides (indices may leave the grid)
+    # on the lower corner, just outside / inside the faces, on the upper faces (indices may leave the grid)
     edges = np.array([[-40.0, -40.0, -1.0], [-40.01, 39.99, 5.4], [40.0, 0.0, -1.2]])
     expected = np.array([[0, 0, 0], [-1, 199, 16], [200, 100, -1]])
     assert np.array_equal(GRID.index_of(edges), expected)
