@@ -21,7 +21,8 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
   ``--openvino-bf16`` today's fp32 graph with OpenVINO's bf16 hint (on CPUs with AVX512-BF16 or AMX).
 
 ``--profile`` prints onnxruntime's own profile of each graph (kernel time per op class, share of the run, and the
-costliest nodes), so a loss shows where it comes from. A 2048³ fp32 matmul (torch) is measured at the start and
+costliest nodes), so a loss shows where it comes from; for a quantised graph also the float kernel time left outside
+its int8 kernels and the speed-up over the first graph that it allows at most (every int8 kernel free). A 2048³ fp32 matmul (torch) is measured at the start and
 the end of the run as the machine's reference; ``--torch`` also times torch eager (``model.inference``). JPEG
 decoding of the six files (whole for the baseline, at reduced scale for today) is timed with each inference in the
 same loop ("with decoding": the end-to-end figure of predict, the server and the C++ runner).
@@ -175,12 +176,26 @@ def profile(session_path: Path, inputs, runs: int, threads: int) -> tuple[dict, 
     return dict(ops), {k: (v, shapes[k]) for k, v in nodes.items()}, sum(ops.values())
 
 
-def print_profile(label: str, ops: dict, nodes: dict, total: float, top: int = 12) -> None:
+# onnxruntime's op classes that compute in int8 (the fused QDQ kernels) or move between int8 and float
+INT8_KERNELS = ("QLinear", "QuantizeLinear", "DequantizeLinear", "MatMulInteger", "ConvInteger",
+                "DynamicQuantizeLinear")
+
+
+def print_profile(label: str, ops: dict, nodes: dict, total: float, top: int = 12,
+                  reference_total: float | None = None) -> None:
+    """Per op class and costliest nodes; for a quantised graph also the float kernel time that remains outside the
+    int8 kernels and the speed-up it allows at most (``reference_total`` / that: as if every int8 kernel were
+    free), the Amdahl bound of quantising these ops and no others."""
     print(f"  profile {label}: kernel time {total:.1f} ms per run")
     for op, ms in sorted(ops.items(), key=lambda kv: -kv[1])[:top]:
         print(f"    {op:22s} {ms:8.2f} ms {100 * ms / total:5.1f} %")
     for node, (ms, shape) in sorted(nodes.items(), key=lambda kv: -kv[1][0])[:6]:
         print(f"      node {node:40s} {ms:7.2f} ms  {str(shape)[:70]}")
+    int8 = sum(ms for op, ms in ops.items() if op.startswith(INT8_KERNELS))
+    if int8 and reference_total:
+        rest = total - int8
+        print(f"    int8 kernels {int8:.1f} ms; float kernels {rest:.1f} ms: with free int8 kernels at most "
+              f"{reference_total / rest:.2f}x the first graph's kernel time ({reference_total:.1f} ms)")
 
 
 class OpenVinoSession:
@@ -291,10 +306,13 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
               f"of today | {flops / 1e9 / p50:5.1f} GFLOP/s | vs today: {100 * a['occupancy_equal_fraction']:.3f} % "
               f"voxels equal, density max |d| {a['density_max_abs_diff']:.1e}", flush=True)
     if args.profile:
+        reference_total = None
         for label, path, inputs in graphs:
             if "[OpenVINO" in label:
                 continue
-            print_profile(label, *profile(path, inputs[0], args.profile_runs, threads))
+            ops, nodes, total = profile(path, inputs[0], args.profile_runs, threads)
+            reference_total = reference_total or total
+            print_profile(label, ops, nodes, total, reference_total=reference_total)
     if args.torch:
         predictor = TorchPredictor(model)
         predictor(reduced[0])

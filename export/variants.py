@@ -177,15 +177,18 @@ class _CalibrationReader:
         self._it = iter(self.samples)
 
 
-def _float_in_int8(proto: onnx.ModelProto) -> list[str]:
+def float_in_int8(proto: onnx.ModelProto) -> list[str]:
     """The nodes of a quantisable type that the int8 variant leaves in float32."""
     return activation_matmuls(proto) + voxel_convs(proto)
 
 
 def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int = 6,
-               frame: str | Path | None = None, int8_range: str = "reduced") -> Path:
+               frame: str | Path | None = None, int8_range: str = "reduced", keep_float: list[str] | None = None,
+               op_types: list[str] | None = None) -> Path:
     """The int8 QDQ variant of ``src`` (see the module docstring), calibrated on ``frame`` (a real frame folder)
-    when given, else on synthetic samples; weights in ``int8_range`` (:data:`INT8_OP_TYPES` note)."""
+    when given, else on synthetic samples; weights in ``int8_range`` (:data:`INT8_OP_TYPES` note). ``keep_float``
+    (node names) and ``op_types`` replace :func:`float_in_int8` and :data:`INT8_OP_TYPES` (for measuring other
+    choices, ``benchmarks/int8_sensitivity.py``)."""
     if int8_range not in INT8_RANGES:
         raise ValueError(f"int8_range must be one of {INT8_RANGES}, got {int8_range!r}")
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
@@ -195,8 +198,9 @@ def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int 
     root.setLevel(logging.ERROR)   # the quantiser logs a "consider pre-processing" advice on the root logger
     try:
         quantize_static(str(src), str(dst), _CalibrationReader(cfg, calibration_samples, frame),
-                        quant_format=QuantFormat.QDQ, op_types_to_quantize=INT8_OP_TYPES,
-                        nodes_to_exclude=_float_in_int8(onnx.load(str(src))), reduce_range=int8_range == "reduced",
+                        quant_format=QuantFormat.QDQ, op_types_to_quantize=op_types or INT8_OP_TYPES,
+                        nodes_to_exclude=float_in_int8(onnx.load(str(src))) if keep_float is None else keep_float,
+                        reduce_range=int8_range == "reduced",
                         per_channel=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         calibrate_method=CalibrationMethod.MinMax)
     finally:

@@ -86,5 +86,13 @@ def test_fp16_and_int8_variants(tmp_path):
     assert spans["reduced"] <= 64 < spans["full"] <= 127
     with pytest.raises(ValueError, match="int8_range"):
         write_int8(src, tmp_path / "m.bad.onnx", exported_tiny()[2].cfg, int8_range="4bit")
+    # keep_float replaces the variant's float list: with only the resampling MatMuls kept, the decoder's convolutions
+    # are quantised too (benchmarks/int8_sensitivity.py measures such choices)
+    from occflownet.export.variants import activation_matmuls
+
+    every = onnx.load(str(write_int8(src, tmp_path / "m.every.onnx", exported_tiny()[2].cfg,
+                                     keep_float=activation_matmuls(onnx.load(str(src)))))).graph
+    producer = {o: n.op_type for n in every.node for o in n.output}
+    assert all(producer.get(n.input[1]) == "DequantizeLinear" for n in every.node if n.op_type == "Conv")
     diffs = [float(line.rsplit("diff ", 1)[1]) for line in lines]
     assert max(diffs) < 0.05 and not np.isnan(diffs).any()
