@@ -21,11 +21,13 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
   ``--openvino-bf16`` today's fp32 graph with OpenVINO's bf16 hint (on CPUs with AVX512-BF16 or AMX).
 
 ``--profile`` prints onnxruntime's own profile of each graph (kernel time per op class, share of the run, and the
-costliest nodes), so a loss shows where it comes from; for a quantised graph also the float kernel time left outside
-its int8 kernels and the speed-up over the first graph that it allows at most (every int8 kernel free). A 2048³ fp32 matmul (torch) is measured at the start and
-the end of the run as the machine's reference; ``--torch`` also times torch eager (``model.inference``). JPEG
-decoding of the six files (whole for the baseline, at reduced scale for today) is timed with each inference in the
-same loop ("with decoding": the end-to-end figure of predict, the server and the C++ runner).
+costliest nodes; for OpenVINO's rows its own per-layer counters, by layer type and kernel), so a loss shows where it
+comes from; for a quantised graph also the float kernel time left outside its int8 kernels and the speed-up over
+the first graph that this allows at most (as if every int8 kernel took no time). A 2048³ fp32 matmul (torch) is
+measured at the start and the end of the run as the machine's reference; ``--torch`` also times torch eager
+(``model.inference``). JPEG decoding of the six files (whole for the baseline, at reduced scale for today) is timed
+with each inference in the same loop ("with decoding": the end-to-end figure of predict, the server and the C++
+runner).
 """
 from __future__ import annotations
 
@@ -181,6 +183,25 @@ INT8_KERNELS = ("QLinear", "QuantizeLinear", "DequantizeLinear", "MatMulInteger"
                 "DynamicQuantizeLinear")
 
 
+def openvino_profile(session: "OpenVinoSession", inputs, runs: int) -> tuple[dict, dict, float]:
+    """OpenVINO's own per-layer counters (``PERF_COUNT``) over ``runs`` runs after one warm-up: ({"layer type /
+    kernel": ms per run}, {node: (ms per run, kernel)}, ms per run); the kernel name says the precision it ran in
+    (``brgconv_avx512_I8``: int8, ``..._f32``: float32)."""
+    request = session.compiled.create_infer_request()
+    feeds = inputs.feeds()
+    request.infer(feeds)
+    ops, nodes = collections.Counter(), collections.Counter()
+    kernels = {}
+    for _ in range(runs):
+        request.infer(feeds)
+        for layer in request.profiling_info:
+            ms = layer.real_time.total_seconds() * 1e3 / runs
+            ops[f"{layer.node_type} / {layer.exec_type}"] += ms
+            nodes[layer.node_name] += ms
+            kernels[layer.node_name] = layer.exec_type
+    return dict(ops), {k: (v, kernels[k]) for k, v in nodes.items()}, sum(ops.values())
+
+
 def print_profile(label: str, ops: dict, nodes: dict, total: float, top: int = 12,
                   reference_total: float | None = None) -> None:
     """Per op class and costliest nodes; for a quantised graph also the float kernel time that remains outside the
@@ -188,7 +209,7 @@ def print_profile(label: str, ops: dict, nodes: dict, total: float, top: int = 1
     free), the Amdahl bound of quantising these ops and no others."""
     print(f"  profile {label}: kernel time {total:.1f} ms per run")
     for op, ms in sorted(ops.items(), key=lambda kv: -kv[1])[:top]:
-        print(f"    {op:22s} {ms:8.2f} ms {100 * ms / total:5.1f} %")
+        print(f"    {op:34s} {ms:8.2f} ms {100 * ms / total:5.1f} %")
     for node, (ms, shape) in sorted(nodes.items(), key=lambda kv: -kv[1][0])[:6]:
         print(f"      node {node:40s} {ms:7.2f} ms  {str(shape)[:70]}")
     int8 = sum(ms for op, ms in ops.items() if op.startswith(INT8_KERNELS))
@@ -202,20 +223,21 @@ class OpenVinoSession:
     """OpenVINO CPU (``INFERENCE_PRECISION_HINT`` f32, as tests/test_runtimes.py) behind onnxruntime's ``run``, so
     that an ``OnnxPredictor`` runs it."""
 
-    def __init__(self, path: Path, threads: int, precision: str = "f32"):
+    def __init__(self, path: Path, threads: int, precision: str = "f32", counters: bool = False):
         import openvino as ov
 
         self.compiled = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_PRECISION_HINT": precision,
-                                                                  "INFERENCE_NUM_THREADS": threads})
+                                                                  "INFERENCE_NUM_THREADS": threads,
+                                                                  "PERF_COUNT": counters})
 
     def run(self, names, feeds):
         result = self.compiled(feeds)
         return [result[self.compiled.output(n)] for n in names]
 
 
-def _openvino(label: str, path: Path, threads: int) -> OpenVinoSession:
+def _openvino(label: str, path: Path, threads: int, counters: bool = False) -> OpenVinoSession:
     """The OpenVINO session of a graph row: f32 precision, or bf16 for the "[OpenVINO bf16]" row."""
-    return OpenVinoSession(path, threads, "bf16" if label.endswith("bf16]") else "f32")
+    return OpenVinoSession(path, threads, "bf16" if label.endswith("bf16]") else "f32", counters)
 
 
 def interleaved(graphs: list[tuple[str, object, tuple]], runs: int) -> tuple[dict, dict]:
@@ -309,6 +331,8 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
         reference_total = None
         for label, path, inputs in graphs:
             if "[OpenVINO" in label:
+                print_profile(label, *openvino_profile(_openvino(label, path, threads, counters=True), inputs[0],
+                                                       args.profile_runs))
                 continue
             ops, nodes, total = profile(path, inputs[0], args.profile_runs, threads)
             reference_total = reference_total or total
