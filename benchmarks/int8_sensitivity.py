@@ -29,6 +29,7 @@ FRAME = ROOT.parent / "shared" / "data" / "nuscenes-frame"
 
 
 def main(argv=None) -> int:
+    from occflownet.choices import INT8_RANGES
     from occflownet.contract import parse_metadata
     from occflownet.export.onnx_export import agreement
     from occflownet.export.parity import inference_frame_sample
@@ -41,7 +42,7 @@ def main(argv=None) -> int:
     p.add_argument("--onnx", required=True, help="an fp32 graph written by `occflownet export` (a trained model)")
     p.add_argument("--out", required=True, help="folder for the variants and sensitivity.jsonl")
     p.add_argument("--frame", default=str(FRAME), help="real frame folder (calibration and agreement)")
-    p.add_argument("--int8-range", choices=["reduced", "full"], default="reduced")
+    p.add_argument("--int8-range", choices=INT8_RANGES, default="reduced", help="int8 weights, as `occflownet export --int8-range`")
     args = p.parse_args(argv)
 
     src, out = Path(args.onnx), Path(args.out)
