@@ -42,7 +42,8 @@ def main(argv=None) -> int:
     p.add_argument("--onnx", required=True, help="an fp32 graph written by `occflownet export` (a trained model)")
     p.add_argument("--out", required=True, help="folder for the variants and sensitivity.jsonl")
     p.add_argument("--frame", default=str(FRAME), help="real frame folder (calibration and agreement)")
-    p.add_argument("--int8-range", choices=INT8_RANGES, default="reduced", help="int8 weights, as `occflownet export --int8-range`")
+    p.add_argument("--int8-range", choices=INT8_RANGES, default="reduced",
+                   help="int8 weights, as `occflownet export --int8-range`")
     args = p.parse_args(argv)
 
     src, out = Path(args.onnx), Path(args.out)
@@ -59,11 +60,12 @@ def main(argv=None) -> int:
     print(f"{src}: preset {meta.preset}, fp32 occupies {100 * occupied.mean():.2f} % of the voxels on {sample.name}; "
           f"decoder convolutions {decoder}; Gemms {gemms}", flush=True)
 
+    with_gemms = [*INT8_OP_TYPES, "Gemm"]
     rows = [("today's int8 variant", today, INT8_OP_TYPES)]
     rows += [(f"+ decoder conv {n}", [k for k in today if k != n], INT8_OP_TYPES) for n in decoder]
-    rows += [(f"+ Gemm {n}", today + [g for g in gemms if g != n], ["Conv", "Gemm"]) for n in gemms]
+    rows += [(f"+ Gemm {n}", today + [g for g in gemms if g != n], with_gemms) for n in gemms]
     rows += [("+ every decoder conv", matmuls, INT8_OP_TYPES),
-             ("+ every decoder conv and Gemm", matmuls, ["Conv", "Gemm"])]
+             ("+ every decoder conv and Gemm", matmuls, with_gemms)]
     for i, (label, keep, ops) in enumerate(rows):
         t = time.perf_counter()
         dst = write_int8(src, out / f"sensitivity-{i}.onnx", cfg, frame=args.frame, int8_range=args.int8_range,

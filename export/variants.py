@@ -193,20 +193,21 @@ def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int 
         raise ValueError(f"int8_range must be one of {INT8_RANGES}, got {int8_range!r}")
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
+    source = onnx.load(str(src))
     root = logging.getLogger()
     level = root.level
     root.setLevel(logging.ERROR)   # the quantiser logs a "consider pre-processing" advice on the root logger
     try:
         quantize_static(str(src), str(dst), _CalibrationReader(cfg, calibration_samples, frame),
                         quant_format=QuantFormat.QDQ, op_types_to_quantize=op_types or INT8_OP_TYPES,
-                        nodes_to_exclude=float_in_int8(onnx.load(str(src))) if keep_float is None else keep_float,
+                        nodes_to_exclude=float_in_int8(source) if keep_float is None else keep_float,
                         reduce_range=int8_range == "reduced",
                         per_channel=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         calibrate_method=CalibrationMethod.MinMax)
     finally:
         root.setLevel(level)
     proto = onnx.load(str(dst))
-    proto.ir_version = min(proto.ir_version, onnx.load(str(src)).ir_version)
+    proto.ir_version = min(proto.ir_version, source.ir_version)
     _set_precision(proto, "int8")
     validate_proto(proto)
     onnx.save(proto, str(dst))
