@@ -199,7 +199,8 @@ def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int 
     root.setLevel(logging.ERROR)   # the quantiser logs a "consider pre-processing" advice on the root logger
     try:
         quantize_static(str(src), str(dst), _CalibrationReader(cfg, calibration_samples, frame),
-                        quant_format=QuantFormat.QDQ, op_types_to_quantize=op_types or INT8_OP_TYPES,
+                        quant_format=QuantFormat.QDQ,
+                        op_types_to_quantize=INT8_OP_TYPES if op_types is None else op_types,
                         nodes_to_exclude=float_in_int8(source) if keep_float is None else keep_float,
                         reduce_range=int8_range == "reduced",
                         per_channel=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
