@@ -108,8 +108,8 @@ def _other_value(f: dataclasses.Field, value):
     if f.name in ("rays_per_step", "warmup_steps", "checkpoint_every", "free_rays_per_step", "horizon"):
         return 7
     if f.name in ("lr", "ema_decay", "threshold", "time_limit_s", "density_scale", "free_space_weight",
-                  "weight_decay", "grad_clip", "render_depth_weight", "free_prior_weight", "density_logit_clip",
-                  "density_grad_floor", "point_semantics_weight", "point_density_weight"):
+                  "weight_decay", "grad_clip", "render_depth_weight", "lidar_depth_weight", "free_prior_weight",
+                  "density_logit_clip", "density_grad_floor", "point_semantics_weight", "point_density_weight"):
         return 0.125
     if isinstance(value, int):
         return value + 3

@@ -46,6 +46,14 @@ def test_render_losses_by_hand_with_and_without_class_weights():
     assert _term(TrainConfig(render_depth_weight=0.2), "render_depth")(inputs).item() == pytest.approx(0.2)
 
 
+def test_lidar_depth_weight_is_the_terms_weight():
+    assert _term(TrainConfig(), "lidar_depth").weight == 0.05                       # official
+    assert _term(TrainConfig(supervision="3d", lidar_depth_weight=1.5), "lidar_depth").weight == 1.5
+    assert "lidar_depth" not in [t.name for t in loss_terms(TrainConfig(depth_loss=False))]
+    with pytest.raises(ValueError, match="lidar_depth_weight"):
+        TrainConfig(lidar_depth_weight=-1.0)
+
+
 def test_render_losses_reject_bad_labels_and_handle_no_rays():
     r = _rendered()
     with pytest.raises(ValueError, match="labels_gt"):

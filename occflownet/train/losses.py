@@ -30,7 +30,7 @@ and ``occupied_logits``: σ and the logits at the supervised voxels), renderings
 - "lidar_depth" (``depth_loss``; BEVDepth/BEVDet ``get_depth_loss``): the LiDAR points of the current frame are
   projected into the feature map of every camera; each feature pixel that receives points gets the one-hot of the
   depth bin nearest to its *closest* point; BCE between the predicted depth distribution and that one-hot, summed
-  over bins and averaged over pixels with a target; weight 0.05;
+  over bins and averaged over pixels with a target; weight ``lidar_depth_weight`` (0.05, official);
 - "free_space" (``free_space`` or ``free_beyond_grid``, beyond the paper): mean -log(1 - opacity) of the free rays
   (LiDAR beams without a return, camera rays to points beyond the grid), weight ``free_space_weight`` (none at 0),
   raised linearly from 0 over the first ``free_ramp_steps`` steps when that is set;
@@ -52,7 +52,6 @@ from occflownet.occ3d import FREE, NUM_CLASSES
 from occflownet.train.recipe import TrainConfig
 
 SEMANTIC_WEIGHT = 1.0      # rendered semantics CE (official)
-LIDAR_DEPTH_WEIGHT = 0.05  # BCE on the LSS depth distribution (official)
 VOXEL_WEIGHT = 1.0         # each of the two 3D terms (paper section 3.3)
 
 
@@ -99,7 +98,7 @@ def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
                   LossTerm("voxel_semantics", VOXEL_WEIGHT, ("occupied_logits", "occupied_labels"),
                            voxel_semantics_loss)]
     if cfg.depth_loss:
-        terms.append(LossTerm("lidar_depth", LIDAR_DEPTH_WEIGHT,
+        terms.append(LossTerm("lidar_depth", cfg.lidar_depth_weight,
                               ("depth_prob", "feature_intrinsics", "cam2ego", "depth_points", "depth_bins"),
                               lidar_depth_loss))
     if cfg.uses_free_rays and cfg.free_space_weight > 0:
@@ -336,7 +335,7 @@ def lidar_depth_loss(depth_prob: torch.Tensor, feature_intrinsics: torch.Tensor,
                      points_ego: Sequence[torch.Tensor], depth_bin_centers: torch.Tensor) -> torch.Tensor:
     """BCE between the LSS depth distribution depth_prob [B, N, D, h, w] (probabilities over D) and one-hot
     LiDAR targets (``lidar_depth_targets``): summed over the D bins, averaged over pixels with a target
-    (0 when no pixel has one). Unweighted (the "lidar_depth" term weighs it by ``LIDAR_DEPTH_WEIGHT``)."""
+    (0 when no pixel has one). Unweighted (the "lidar_depth" term weighs it by ``lidar_depth_weight``)."""
     if depth_prob.dim() != 5 or depth_prob.shape[2] != depth_bin_centers.numel():
         raise ValueError(f"depth_prob must be [B, N, D, h, w] with D = {depth_bin_centers.numel()} bins, got "
                          f"{tuple(depth_prob.shape)}")
