@@ -137,3 +137,104 @@ def test_the_dataset_draws_flips_deterministically_and_leaves_other_draws_alone(
     assert len(seen) >= 3                                                          # flips do happen, both axes
     with pytest.raises(ValueError, match="symmetric"):
         BevFlip(True).apply(plain[(3, 0)], Grid(lower=(-40.0, -30.0, -1.0), upper=(40.0, 50.0, 5.4)))
+
+
+# --- image augmentation ---------------------------------------------------------------------------------------------
+
+def _ramp(v: int = 2, h: int = 54, w: int = 96) -> torch.Tensor:
+    """uint8 [v, h, w, 3] images linear in the pixel coordinates (bilinear sampling reproduces them exactly)."""
+    ys, xs = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    planes = [40 + 1.5 * xs + 0.5 * ys, 200 - 1.2 * xs + 0.4 * ys, 30 + 0.8 * xs + 2.0 * ys]
+    return torch.from_numpy(np.stack([np.stack(planes, -1)] * v).round().astype(np.uint8))
+
+
+def test_the_identity_map_and_a_flip_warp_exactly():
+    from occflownet.train.augment import ImageAug
+
+    images = _ramp()
+    k = torch.tensor([[80.0, 0.0, 47.0], [0.0, 80.0, 27.0], [0.0, 0.0, 1.0]]).expand(2, 3, 3)
+    same = ImageAug(np.stack([ImageAug.map_for(54, 96)] * 2)).apply({"images": images, "intrinsics": k})
+    assert torch.equal(same["images"], images) and torch.equal(same["intrinsics"], k)
+    flipped = ImageAug(np.stack([ImageAug.map_for(54, 96, flip=True)] * 2)).apply({"images": images, "intrinsics": k})
+    assert torch.equal(flipped["images"], torch.flip(images, [2]))
+    # x' = W - 1 - x: fx → -fx, cx → W - 1 - cx
+    torch.testing.assert_close(flipped["intrinsics"][0], torch.tensor([[-80.0, 0.0, 48.0], [0.0, 80.0, 27.0],
+                                                                       [0.0, 0.0, 1.0]]))
+
+
+def test_an_augmented_image_shows_at_q_what_the_stored_one_shows_at_the_inverse_map_of_q():
+    """Known answer: on images linear in x and y the bilinear warp is exact, so each augmented pixel whose source lies
+    inside the stored image equals the linear function at A⁻¹ q (up to uint8 rounding); pixels whose source is
+    outside are black."""
+    from occflownet.train.augment import ImageAug
+
+    h, w = 54, 96
+    images = _ramp(3, h, w)
+    aug = ImageAug.draw(np.random.default_rng(4), h, w, 3)
+    out = aug.apply({"images": images, "intrinsics": torch.eye(3).expand(3, 3, 3)})["images"]
+    ys, xs = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    for v in range(3):
+        src = np.einsum("ij,hwj->hwi", np.linalg.inv(aug.maps[v]), np.stack([xs, ys, np.ones_like(xs)], -1))
+        sx, sy = src[..., 0], src[..., 1]
+        inside = (sx >= 0) & (sx <= w - 1) & (sy >= 0) & (sy <= h - 1)
+        outside = (sx < -1) | (sx > w) | (sy < -1) | (sy > h)
+        assert inside.mean() > 0.6 and not np.allclose(aug.maps[v], np.eye(3))
+        expected = 40 + 1.5 * sx + 0.5 * sy                       # channel 0, before rounding
+        got = out[v, ..., 0].numpy().astype(np.float64)
+        assert np.abs(got - expected)[inside].max() <= 1.0
+        assert np.all(out[v].numpy()[outside] == 0)
+
+
+def test_the_intrinsics_follow_the_warp_and_keep_the_depth():
+    """A camera-frame point projects with the augmented intrinsics to A · (its stored pixel), at the same z."""
+    from occflownet.train.augment import ImageAug
+
+    rng = np.random.default_rng(7)
+    k = torch.tensor([[1266.4, 0.0, 816.3], [0.0, 1266.4, 491.5], [0.0, 0.0, 1.0]]).expand(6, 3, 3)
+    aug = ImageAug.draw(rng, 900, 1600, 6)
+    k_aug = aug.apply({"images": torch.zeros(6, 900, 1600, 3, dtype=torch.uint8), "intrinsics": k})["intrinsics"]
+    points = rng.uniform([-10, -5, 2], [10, 5, 50], size=(20, 3))
+    for v in range(6):
+        stored = points @ k[v].numpy().astype(np.float64).T
+        moved = points @ k_aug[v].numpy().astype(np.float64).T
+        np.testing.assert_allclose(moved[:, 2], points[:, 2], rtol=1e-6)
+        np.testing.assert_allclose(moved[:, :2] / moved[:, 2:], (stored / stored[:, 2:]) @ aug.maps[v][:2].T,
+                                   atol=0.05)
+
+
+def test_image_aug_draws_stay_in_the_official_ranges():
+    from occflownet.train.augment import ROTATION_DEG, SCALE_RANGE, ImageAug
+
+    maps = ImageAug.draw(np.random.default_rng(0), 270, 480, 600).maps
+    linear = maps[:, :2, :2]
+    scale = np.sqrt(np.abs(np.linalg.det(linear)))
+    assert SCALE_RANGE[0] - 1e-9 <= scale.min() and scale.max() <= SCALE_RANGE[1] + 1e-9
+    assert scale.max() - scale.min() > 0.9 * (SCALE_RANGE[1] - SCALE_RANGE[0])
+    flips = np.linalg.det(linear) < 0
+    assert 0.4 < flips.mean() < 0.6
+    angle = np.degrees(np.arctan2(linear[:, 1, 0], np.where(flips, -1, 1) * linear[:, 0, 0]))
+    assert np.abs(angle).max() <= ROTATION_DEG + 1e-6 and np.abs(angle).max() > 0.9 * ROTATION_DEG
+    np.testing.assert_array_equal(ImageAug.draw(np.random.default_rng(0), 270, 480, 600).maps, maps)
+
+
+def test_the_dataset_warps_images_with_their_intrinsics_and_leaves_other_draws_alone(prepared_synth_root):
+    from occflownet.data.index import load_index
+
+    root, _ = prepared_synth_root
+    index = load_index(root)
+
+    def items(aug):
+        config = TrainConfig(dataroot=str(root), supervision="2d+3d", rays_per_step=3000, image_aug=aug)
+        return TrainingSamples(root, index, index.split_positions("all"), config)
+
+    plain, augmented = items(False), items(True)
+    a, b = plain[(3, 2)], augmented[(3, 2)]
+    for key in ("ray_depths", "ray_labels", "ray_directions", "cam2ego", "depth_points", "occ_semantics"):
+        assert torch.equal(a[key], b[key]), key
+    assert b["images"].shape == a["images"].shape and b["images"].dtype == torch.uint8
+    for v in range(6):
+        assert not torch.equal(a["images"][v], b["images"][v]) and not torch.equal(a["intrinsics"][v],
+                                                                                   b["intrinsics"][v])
+    again = augmented[(3, 2)]
+    assert torch.equal(again["images"], b["images"]) and torch.equal(again["intrinsics"], b["intrinsics"])
+    assert not torch.equal(augmented[(3, 3)]["intrinsics"], b["intrinsics"])

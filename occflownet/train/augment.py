@@ -1,12 +1,17 @@
-"""BEV flip augmentation of a training item (the official recipe's ``bda_aug_conf``: flip_dx_ratio = flip_dy_ratio =
-0.5, no rotation or scaling): the ego frame is mirrored in x and/or y, and every geometric field of the item with it.
+"""Augmentations of a training item, each drawn per item from the item's generator and applied to its fields:
 
-The images and intrinsics stay as they are; the mirror acts on the 3D side, as BEVDet's BEV data augmentation does
-(its matrix multiplies the lifted frustum points): ``cam2ego`` becomes ``F · cam2ego`` (F = diag(sx, sy, 1, 1), a
-reflection, so the mapped camera frame is left-handed, which the lifting and the LiDAR depth targets take as they
-take any matrix), and so the network lifts each pixel to the mirrored place. The labels, rays and box moves are
-mirrored to match. Needs a grid symmetric about x = 0 and y = 0 (Occ3D's: [-40, 40] m), so that voxel index i maps
-to X - 1 - i.
+- :class:`BevFlip`, the official recipe's ``bda_aug_conf`` (flip_dx_ratio = flip_dy_ratio = 0.5, no rotation or
+  scaling): the ego frame is mirrored in x and/or y, and every geometric field of the item with it;
+- :class:`ImageAug`, the official recipe's image augmentation (``data_config``: resize jitter, horizontal crop
+  position, horizontal flip, rotation, drawn per camera): each image is warped by an affine map of its pixel
+  coordinates and its intrinsics follow, so the scene's geometry is unchanged.
+
+BEV flip. The images and intrinsics stay as they are; the mirror acts on the 3D side, as BEVDet's BEV data
+augmentation does (its matrix multiplies the lifted frustum points): ``cam2ego`` becomes ``F · cam2ego`` (F = diag(sx,
+sy, 1, 1), a reflection, so the mapped camera frame is left-handed, which the lifting and the LiDAR depth targets take
+as they take any matrix), and so the network lifts each pixel to the mirrored place. The labels, rays and box moves
+are mirrored to match. Needs a grid symmetric about x = 0 and y = 0 (Occ3D's: [-40, 40] m), so that voxel index i
+maps to X - 1 - i.
 
 Fields of an item (``occflownet.train.dataset``; all in the current ego frame) and what a flip does to them:
 ``cam2ego`` [6, 4, 4] → F·cam2ego; ``ray_origins``, ``ray_directions``, ``free_origins``, ``free_directions``
@@ -14,6 +19,19 @@ Fields of an item (``occflownet.train.dataset``; all in the current ego frame) a
 ``free_masks`` [T, X, Y, Z] → reversed along the flipped axes; ``flow`` (box moves: voxels int [M, 3], transforms
 [K, 4, 4] ego → ego) → voxel indices mirrored, transforms F·T·F. Depths, labels and everything per ray or per
 volume are unchanged.
+
+Image augmentation. Pixel coordinates follow the OpenCV convention of the contract (integer coordinates are pixel
+centres). Camera v's map A_v (3 × 3, last row 0 0 1) takes a pixel of the stored image to its place in the
+augmented one; the augmented image at q is the stored image at A_v⁻¹ q (bilinear, black outside the stored image,
+the same size as it), and its intrinsics are A_v · K_v, so a camera-frame point still lands on the pixel that shows
+it, at the same z-depth (the lifting inverts any 3 × 3 intrinsics; the LiDAR depth targets project with the
+network's feature intrinsics, derived from these). Only ``images`` [6, H, W, 3] and ``intrinsics`` [6, 3, 3] change.
+A_v = R · F · S, drawn per camera as BEVDet's ``sample_augmentation`` draws per camera:
+S scales by s about the bottom centre of the image (the official keeps the bottom rows of the resized image) and
+shifts it sideways by up to the width it gained or lost (the official's random crop position); F mirrors it
+horizontally with probability 0.5; R rotates it about the image centre by an angle in [-5.4°, 5.4°].
+s ∈ [1 - 0.06 / 0.88, 1 + 0.11 / 0.88]: the official jitter (-0.06, 0.11) added to its base resize 1408 / 1600 =
+0.88, taken relative to that base.
 """
 from __future__ import annotations
 
@@ -27,6 +45,10 @@ from occflownet.occ3d import GRID, Grid
 VECTOR_FIELDS = ("ray_origins", "ray_directions", "free_origins", "free_directions", "depth_points")
 GRID_FIELDS = ("occ_semantics", "occ_mask")       # [X, Y, Z]
 STACKED_GRID_FIELDS = ("free_masks",)             # [T, X, Y, Z]
+
+SCALE_RANGE = (1.0 - 0.06 / 0.88, 1.0 + 0.11 / 0.88)  # official resize jitter (-0.06, 0.11) over its base 0.88
+ROTATION_DEG = 5.4                                  # official rot (-5.4, 5.4)
+IMAGE_FLIP_RATIO = 0.5                              # official flip: True (np.random.choice([0, 1]))
 
 
 @dataclass(frozen=True)
@@ -81,3 +103,66 @@ class BevFlip:
                 voxels[:, axis] = grid.shape[axis] - 1 - voxels[:, axis]
         mirror = np.diag(np.append(self.signs, 1.0)).astype(np.asarray(moves["transforms"]).dtype)
         return dict(moves, voxels=voxels, transforms=mirror @ np.asarray(moves["transforms"]) @ mirror)
+
+
+@dataclass(frozen=True)
+class ImageAug:
+    """Per-camera affine maps of pixel coordinates, stored image → augmented image: ``maps`` float64 [V, 3, 3]
+    (last rows 0 0 1; see the module docstring)."""
+
+    maps: np.ndarray
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, height: int, width: int, cameras: int) -> "ImageAug":
+        """Maps for ``cameras`` images of ``height`` × ``width`` pixels from ``rng`` (four draws per camera, always:
+        scale, sideways shift, flip, angle)."""
+        u = rng.random((cameras, 4))
+        maps = []
+        for scale_u, shift_u, flip_u, angle_u in u:
+            s = SCALE_RANGE[0] + scale_u * (SCALE_RANGE[1] - SCALE_RANGE[0])
+            shift = (2.0 * shift_u - 1.0) * abs(s - 1.0) * width / 2.0
+            angle = np.deg2rad((2.0 * angle_u - 1.0) * ROTATION_DEG)
+            maps.append(cls.map_for(height, width, s, shift, bool(flip_u < IMAGE_FLIP_RATIO), angle))
+        return cls(np.stack(maps))
+
+    @staticmethod
+    def map_for(height: int, width: int, scale: float = 1.0, shift: float = 0.0, flip: bool = False,
+                angle: float = 0.0) -> np.ndarray:
+        """A = R · F · S (float64 [3, 3]): S scales by ``scale`` about the bottom centre ((W - 1) / 2, H - 0.5) and
+        moves the result ``shift`` pixels right; F mirrors x ↦ W - 1 - x when ``flip``; R rotates by ``angle``
+        radians about the image centre ((W - 1) / 2, (H - 1) / 2)."""
+        cx, bottom, cy = (width - 1) / 2.0, height - 0.5, (height - 1) / 2.0
+        s_map = np.array([[scale, 0.0, (1.0 - scale) * cx + shift], [0.0, scale, (1.0 - scale) * bottom],
+                          [0.0, 0.0, 1.0]])
+        f_map = np.array([[-1.0, 0.0, width - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) if flip else np.eye(3)
+        c, sn = np.cos(angle), np.sin(angle)
+        r_map = np.array([[c, -sn, cx - c * cx + sn * cy], [sn, c, cy - sn * cx - c * cy], [0.0, 0.0, 1.0]])
+        return r_map @ f_map @ s_map
+
+    def apply(self, item: dict) -> dict:
+        """A copy of the training ``item`` with ``images`` (uint8 [V, H, W, 3]) warped and ``intrinsics`` ([V, 3, 3])
+        multiplied by the maps."""
+        images = item["images"]
+        v, h, w, _ = images.shape
+        if self.maps.shape != (v, 3, 3):
+            raise ValueError(f"ImageAug has {self.maps.shape[0]} maps for {v} images")
+        out = dict(item)
+        out["images"] = warp_images(images, np.linalg.inv(self.maps))
+        maps = torch.from_numpy(self.maps).to(torch.float64)
+        out["intrinsics"] = (maps @ item["intrinsics"].to(torch.float64)).to(item["intrinsics"].dtype)
+        return out
+
+
+def warp_images(images: torch.Tensor, inverse_maps: np.ndarray) -> torch.Tensor:
+    """uint8 images [V, H, W, 3] → uint8 [V, H, W, 3]: output pixel q is the bilinear sample of its image at
+    ``inverse_maps[v] @ q`` (float [V, 3, 3], pixel-centre coordinates, last rows 0 0 1), 0 outside the image."""
+    v, h, w, _ = images.shape
+    m = torch.from_numpy(np.asarray(inverse_maps)[:, :2]).to(torch.float32)          # [V, 2, 3]
+    xs = torch.arange(w, dtype=torch.float32)[None, None, :]                         # [1, 1, W]
+    ys = torch.arange(h, dtype=torch.float32)[None, :, None]                         # [1, H, 1]
+    size = torch.tensor([w, h], dtype=torch.float32)
+    src = [m[:, r, 0, None, None] * xs + m[:, r, 1, None, None] * ys + m[:, r, 2, None, None] for r in range(2)]
+    grid = (2.0 * torch.stack(src, dim=-1) + 1.0) / size - 1.0                       # [V, H, W, 2], align_corners=False
+    warped = torch.nn.functional.grid_sample(images.permute(0, 3, 1, 2).to(torch.float32), grid, mode="bilinear",
+                                             padding_mode="zeros", align_corners=False)
+    return warped.round_().clamp_(0, 255).to(torch.uint8).permute(0, 2, 3, 1).contiguous()

@@ -110,6 +110,9 @@ class TrainConfig:
                                           "beyond the paper)", choices=RAY_SAMPLINGS)
     bev_flip: bool = option(False, "mirror each training sample's ego frame in x and in y, each with probability "
                                    "0.5 (the official recipe's BEV augmentation; occflownet/train/augment.py)")
+    image_aug: bool = option(False, "warp each training image by a random resize, sideways shift, horizontal flip and "
+                                    "rotation, its intrinsics with it (the official recipe's image augmentation; "
+                                    "occflownet/train/augment.py)")
     max_steps: int = option(1000, "optimisation steps")
     time_limit_s: float = option(0.0, "stop with a checkpoint after this many seconds (0: no limit)",
                                  flag="time-limit")
