@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.choices import SUPERVISION_MODES, supervision_parts
+from occflownet.choices import PRESET_NAMES, SUPERVISION_MODES, supervision_parts
 from occflownet.contract import calibration_json
 from occflownet.data.index import load_index
 from occflownet.files import atomic_path
@@ -36,6 +36,9 @@ class QuickstartConfig:
     scenes: int = option(6, "synthetic scenes (the last one is the val split); more, shorter scenes generalise "
                                  "better than few long ones at the same cost (docs/training.md)")
     frames: int = option(8, "keyframes per scene")
+    preset: str = option("tiny", "model preset; small (tiny with a denser lifting) generalises better at equal "
+                                 "steps but takes 2.2x as long a step, so it needs a longer --train-minutes "
+                                 "(docs/training.md)", choices=PRESET_NAMES)
     seed: int = option(0, "seed of the world and of the training run")
     train_minutes: float = option(7.0, "training time budget in minutes")
     max_steps: int = option(3000, "step cap (6 min on the 2-core reference CPU; a slower one stops at the time "
@@ -180,9 +183,9 @@ def _prepare(cfg: QuickstartConfig, paths: QuickstartPaths, announce):
 
 
 def train_config(cfg: QuickstartConfig, world: Path, run: Path, version: str) -> TrainConfig:
-    """The run the quickstart trains: ``tiny`` on ``world``'s train split into ``run``, with occupancy flow when
+    """The run the quickstart trains: ``cfg.preset`` on ``world``'s train split into ``run``, with occupancy flow when
     rays are rendered (2D supervision), for ``cfg``'s time and step budget."""
-    return TrainConfig(preset="tiny", dataroot=str(world), out=str(run), version=version, split="train",
+    return TrainConfig(preset=cfg.preset, dataroot=str(world), out=str(run), version=version, split="train",
                        supervision=cfg.supervision, flow="2d" in supervision_parts(cfg.supervision),
                        time_limit_s=cfg.train_minutes * 60,
                        max_steps=cfg.max_steps, seed=cfg.seed, voxel_mask=cfg.voxel_mask)

@@ -21,7 +21,7 @@ from occflownet.quickstart import QuickstartConfig, train_argv, train_config
 from occflownet.train.recipe import PRESET_RECIPES, TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
-SETS = {"PRESET_NAMES": ("tiny", "base", "paper"), "HEAD_INITS": ("prior", "official"),
+SETS = {"PRESET_NAMES": ("tiny", "small", "base", "paper"), "HEAD_INITS": ("prior", "official"),
         "SUPERVISION_MODES": ("2d", "3d", "2d+3d"), "FLOW_MOVERS": ("idw", "nearest"),
         "SIGMA_READINGS": ("density", "opacity"), "RENDER_SEMANTICS": ("mixture", "normalized"),
         "LR_SCHEDULES": ("constant", "cosine"), "INT8_RANGES": ("reduced", "full"),
@@ -64,7 +64,7 @@ def test_the_command_lines_offer_the_same_choices():
                                     "lr_schedule": LR_SCHEDULES, "precision": PRECISIONS,
                                     "free_stretch": FREE_STRETCH_RULES, "ray_sampling": RAY_SAMPLINGS,
                                     "voxel_weighting": VOXEL_WEIGHTINGS}
-    assert _choices_of("quickstart") == {"supervision": SUPERVISION_MODES}
+    assert _choices_of("quickstart") == {"preset": PRESET_NAMES, "supervision": SUPERVISION_MODES}
     for verb in ("export", "predict"):
         assert _choices_of(verb)["preset"] == PRESET_NAMES
     assert _choices_of("export")["int8_range"] == INT8_RANGES

@@ -7,7 +7,7 @@ from occflownet.model import PRESETS, ModelConfig, get_preset
 from occflownet.rig import default_rig
 
 
-@pytest.mark.parametrize("name", ["tiny", "base", "paper"])
+@pytest.mark.parametrize("name", ["tiny", "small", "base", "paper"])
 def test_preset_round_trips_through_asdict_and_json(name):
     cfg = get_preset(name)
     assert cfg.preset == name
@@ -26,6 +26,38 @@ def test_presets_match_the_design():
     for cfg in (tiny, base, paper):
         assert cfg.threshold == 0.35
         assert cfg.default_calibration == default_rig(480, 270)
+
+
+def test_small_is_tiny_with_a_denser_lifting():
+    """small differs from tiny only in its input size and depth bins, and its frustum points fall into about five
+    times as many distinct voxels of the default rig's view (the full-resolution skip is that much less sparse)."""
+    import numpy as np
+    import torch
+
+    from occflownet.model.lift import frustum_points
+    from occflownet.model.preprocess import adjust_intrinsics, crop_window, scale_intrinsics_to_features
+    from occflownet.model.presets import FEATURE_STRIDE
+    from occflownet.occ3d import GRID
+
+    tiny, small = get_preset("tiny"), get_preset("small")
+    assert asdict(small) | {"preset": "tiny", "input_size": tiny.input_size,
+                            "num_depth_bins": tiny.num_depth_bins} == asdict(tiny)
+    cams = default_rig(480, 270)["cameras"].values()
+    k = torch.tensor([c["intrinsic"] for c in cams], dtype=torch.float32)[None]
+    cam2ego = torch.tensor([c["cam2ego"] for c in cams], dtype=torch.float32)[None]
+
+    def voxels_hit(cfg):
+        y0, x0, x1, step = crop_window(270, 480, cfg.input_size)
+        rows, cols = -(-(270 - y0) // step), -(-(x1 - x0) // step)
+        kf = scale_intrinsics_to_features(adjust_intrinsics(k, y0, x0, step, rows, cols, cfg.input_size),
+                                          FEATURE_STRIDE)
+        h, w = cfg.input_size[0] // FEATURE_STRIDE, cfg.input_size[1] // FEATURE_STRIDE
+        points = frustum_points(kf, cam2ego, torch.tensor(cfg.depth_bin_centers()), h, w).reshape(-1, 3).numpy()
+        ijk = GRID.index_of(points)
+        inside = np.all((ijk >= 0) & (ijk < np.asarray(GRID.shape)), axis=1)
+        return len(np.unique(ijk[inside], axis=0))
+
+    assert voxels_hit(small) > 4 * voxels_hit(tiny)
 
 
 def test_depth_bins_span_1_to_45_m():

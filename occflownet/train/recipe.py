@@ -13,8 +13,10 @@ from occflownet.options import option
 # The per-preset recipe: the values a TrainConfig field left at None takes. The official values (AdamW 1e-4,
 # 200 warm-up steps, 32,768 rays per sample) for base and paper; tiny learns something in a CPU run of minutes.
 # One recipe per name of PRESET_NAMES (tests/test_choices.py).
+CPU_RECIPE = {"rays_per_step": 4096, "lr": 2e-3, "warmup_steps": 50, "ema_decay": 0.99, "checkpoint_every": 50}
 PRESET_RECIPES: dict[str, dict] = {
-    "tiny": {"rays_per_step": 4096, "lr": 2e-3, "warmup_steps": 50, "ema_decay": 0.99, "checkpoint_every": 50},
+    "tiny": CPU_RECIPE,
+    "small": CPU_RECIPE,
     "base": {"rays_per_step": 32768, "lr": 1e-4, "warmup_steps": 200, "ema_decay": 0.999, "checkpoint_every": 500},
     "paper": {"rays_per_step": 32768, "lr": 1e-4, "warmup_steps": 200, "ema_decay": 0.999, "checkpoint_every": 500},
 }
