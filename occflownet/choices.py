@@ -4,7 +4,7 @@ their checks read these tuples (``tests/test_choices.py`` lists them and finds n
 """
 from __future__ import annotations
 
-PRESET_NAMES: tuple[str, ...] = ("tiny", "small", "base", "paper")   # model presets (model/presets.py PRESETS) and recipes
+PRESET_NAMES: tuple[str, ...] = ("tiny", "small", "base", "paper")  # model presets (model/presets.py) and recipes
 HEAD_INITS: tuple[str, ...] = ("prior", "official")         # σ/semantic head initialisations (model/decoder.py)
 SUPERVISION_MODES: tuple[str, ...] = ("2d", "3d", "2d+3d")  # LiDAR rendering, Occ3D voxel labels, both
 FLOW_MOVERS: tuple[str, ...] = ("idw", "nearest")           # occupancy-flow movers (render/occupancy_flow.py)

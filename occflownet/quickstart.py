@@ -37,7 +37,7 @@ class QuickstartConfig:
                                  "better than few long ones at the same cost (docs/training.md)")
     frames: int = option(8, "keyframes per scene")
     preset: str = option("tiny", "model preset; small (tiny with a denser lifting) generalises better at equal "
-                                 "steps but takes 2.2x as long a step, so it needs a longer --train-minutes "
+                                 "steps but takes 2.1x as long a step, so it needs a longer --train-minutes "
                                  "(docs/training.md)", choices=PRESET_NAMES)
     seed: int = option(0, "seed of the world and of the training run")
     train_minutes: float = option(7.0, "training time budget in minutes")

@@ -58,7 +58,7 @@ class TrainConfig:
                                       "voxel (one voxel can stop the light; docs/render.md)", choices=SIGMA_READINGS)
     render_depth_weight: float = option(0.05, "weight of the rendered-depth MSE (0.05 = official)")
     lidar_depth_weight: float = option(0.05, "weight of the LiDAR depth BCE on the LSS depth distribution (0.05 = "
-                                             "official, BEVDet-occ; BEVDepth uses 3.0)")
+                                             "official)")
     render_semantics: str = option("mixture", "CE on the rendered logit mixture (official) or on it divided by the "
                                               "ray's weight sum", choices=RENDER_SEMANTICS)
     point_semantics_weight: float = option(0.0, "weight of the CE of the semantic logits of the voxel that holds each "
@@ -163,10 +163,10 @@ class TrainConfig:
         if self.sigma_is not in SIGMA_READINGS or self.render_semantics not in RENDER_SEMANTICS:
             raise ValueError(f"sigma_is must be one of {SIGMA_READINGS} and render_semantics one of "
                              f"{RENDER_SEMANTICS}, got {self.sigma_is!r}, {self.render_semantics!r}")
-        if min(self.render_depth_weight, self.lidar_depth_weight, self.free_prior_weight, self.density_logit_clip, self.density_grad_floor,
-               self.point_semantics_weight, self.point_density_weight) < 0:
-            raise ValueError("render_depth_weight, lidar_depth_weight, free_prior_weight, density_logit_clip, density_grad_floor, "
-                             "point_semantics_weight and point_density_weight must be >= 0")
+        if min(self.render_depth_weight, self.lidar_depth_weight, self.free_prior_weight, self.density_logit_clip,
+               self.density_grad_floor, self.point_semantics_weight, self.point_density_weight) < 0:
+            raise ValueError("render_depth_weight, lidar_depth_weight, free_prior_weight, density_logit_clip, "
+                             "density_grad_floor, point_semantics_weight and point_density_weight must be >= 0")
         if max(self.point_semantics_weight, self.point_density_weight) > 0 and not self.uses_2d:
             raise ValueError("point_semantics_weight and point_density_weight read the rays' points: they need "
                              "supervision '2d' or '2d+3d'")
