@@ -35,7 +35,7 @@ def test_small_is_tiny_with_a_denser_lifting():
     import torch
 
     from occflownet.model.lift import frustum_points
-    from occflownet.model.preprocess import adjust_intrinsics, crop_window, scale_intrinsics_to_features
+    from occflownet.model.preprocess import preprocess_images, scale_intrinsics_to_features
     from occflownet.model.presets import FEATURE_STRIDE
     from occflownet.occ3d import GRID
 
@@ -46,11 +46,11 @@ def test_small_is_tiny_with_a_denser_lifting():
     k = torch.tensor([c["intrinsic"] for c in cams], dtype=torch.float32)[None]
     cam2ego = torch.tensor([c["cam2ego"] for c in cams], dtype=torch.float32)[None]
 
+    images = torch.zeros(1, 6, 270, 480, 3, dtype=torch.uint8)
+
     def voxels_hit(cfg):
-        y0, x0, x1, step = crop_window(270, 480, cfg.input_size)
-        rows, cols = -(-(270 - y0) // step), -(-(x1 - x0) // step)
-        kf = scale_intrinsics_to_features(adjust_intrinsics(k, y0, x0, step, rows, cols, cfg.input_size),
-                                          FEATURE_STRIDE)
+        _, input_k = preprocess_images(images, k, cfg.input_size, cfg.image_mean, cfg.image_std)
+        kf = scale_intrinsics_to_features(input_k, FEATURE_STRIDE)
         h, w = cfg.input_size[0] // FEATURE_STRIDE, cfg.input_size[1] // FEATURE_STRIDE
         points = frustum_points(kf, cam2ego, torch.tensor(cfg.depth_bin_centers()), h, w).reshape(-1, 3).numpy()
         ijk = GRID.index_of(points)

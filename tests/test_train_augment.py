@@ -13,13 +13,14 @@ from occflownet.train.recipe import TrainConfig
 FLIPS = [BevFlip(True, False), BevFlip(False, True), BevFlip(True, True)]
 
 
-def _items(root, flip: bool) -> TrainingSamples:
+def _items(root, flip: bool, image_aug: bool = False) -> TrainingSamples:
     """The training items of every keyframe of ``root`` with rays, depth points, 3D labels and box moves."""
     from occflownet.data.flow import flow_path, load_flow_records
     from occflownet.data.index import load_index
 
     index = load_index(root)
-    config = TrainConfig(dataroot=str(root), supervision="2d+3d", flow=True, rays_per_step=3000, bev_flip=flip)
+    config = TrainConfig(dataroot=str(root), supervision="2d+3d", flow=True, rays_per_step=3000, bev_flip=flip,
+                         image_aug=image_aug)
     return TrainingSamples(root, index, index.split_positions("all"), config,
                            load_flow_records(flow_path(root, index.version)))
 
@@ -218,16 +219,8 @@ def test_image_aug_draws_stay_in_the_official_ranges():
 
 
 def test_the_dataset_warps_images_with_their_intrinsics_and_leaves_other_draws_alone(prepared_synth_root):
-    from occflownet.data.index import load_index
-
     root, _ = prepared_synth_root
-    index = load_index(root)
-
-    def items(aug):
-        config = TrainConfig(dataroot=str(root), supervision="2d+3d", rays_per_step=3000, image_aug=aug)
-        return TrainingSamples(root, index, index.split_positions("all"), config)
-
-    plain, augmented = items(False), items(True)
+    plain, augmented = _items(root, False), _items(root, False, image_aug=True)
     a, b = plain[(3, 2)], augmented[(3, 2)]
     for key in ("ray_depths", "ray_labels", "ray_directions", "cam2ego", "depth_points", "occ_semantics"):
         assert torch.equal(a[key], b[key]), key
