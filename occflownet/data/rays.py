@@ -209,11 +209,16 @@ def frame_hits(sample, dataroot, config: RayConfig = RayConfig()) -> FrameHits:
 class RayBuilder:
     """Builds the rays of a keyframe and its temporal neighbours from a SampleIndex (per-frame hits cached)."""
 
-    def __init__(self, index, dataroot, config: RayConfig = RayConfig(), cache_size: int = 16):
+    def __init__(self, index, dataroot, config: RayConfig = RayConfig(), cache_size: int = 16,
+                 sight_frames: int | None = None):
+        """``cache_size``: frames whose hits are kept (about 2 MB each for a nuScenes-size sweep); ``sight_frames``:
+        keyframes whose sight masks, free-stretch ends and near-point masks are kept (each up to 4 · (2O + 1)
+        entries, a near-point mask 640 kB; default ``cache_size``)."""
         self.index = index
         self.dataroot = dataroot
         self.config = config
         self.cache_size = cache_size
+        self.sight_frames = cache_size if sight_frames is None else sight_frames
         self._cache: OrderedDict[int, FrameHits] = OrderedDict()
         self._sight: OrderedDict[tuple, object] = OrderedDict()   # sight masks, free-stretch ends, near points
 
@@ -298,7 +303,7 @@ class RayBuilder:
         of key)."""
         if key not in self._sight:
             self._sight[key] = compute()
-            while len(self._sight) > 4 * (2 * self.config.horizon + 1) * max(self.cache_size, 1):
+            while len(self._sight) > 4 * (2 * self.config.horizon + 1) * max(self.sight_frames, 1):
                 self._sight.popitem(last=False)
         self._sight.move_to_end(key)
         return self._sight[key]

@@ -154,14 +154,16 @@ class VoxelDecoder(nn.Module):
         b, xc, yc, zc, _ = trunk.shape
         s3 = self.stride ** 3
         x = self.voxel_features(trunk, fine_points)
+        at_density = None if density_rows is None else torch.index_select(x, 0, density_rows)
         if density_rows is None:
             sigma = self.sigma_head(x).reshape(b, xc, yc, zc, s3)
         else:
-            sigma = self.sigma_head(torch.index_select(x, 0, density_rows)).reshape(-1)
+            sigma = self.sigma_head(at_density).reshape(-1)
         if logit_rows is None:
             semantic = self.semantic_head(x).reshape(b, xc, yc, zc, s3, NUM_CLASSES)
-        else:
-            semantic = self.semantic_head(torch.index_select(x, 0, logit_rows))
+        else:       # one gather when both heads run on the same rows (the rays' footprint)
+            semantic = self.semantic_head(at_density if logit_rows is density_rows
+                                          else torch.index_select(x, 0, logit_rows))
         return sigma, semantic
 
     def fused_occupancy(self, trunk: torch.Tensor, fine_points, threshold: float):

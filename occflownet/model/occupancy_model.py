@@ -91,7 +91,9 @@ class OccupancyModel(nn.Module):
         trunk, fine_points, depth_prob, feature_k = self._lift(images, intrinsics, cam2ego)
         s = self.cfg.decoder_stride
         to_block = lambda rows: None if rows is None else block_rows(rows, GRID.shape, s)  # noqa: E731
-        sigma_logits, semantic_logits = self.decoder(trunk, fine_points, to_block(density_at), to_block(logits_at))
+        density_rows = to_block(density_at)
+        logit_rows = density_rows if logits_at is density_at else to_block(logits_at)
+        sigma_logits, semantic_logits = self.decoder(trunk, fine_points, density_rows, logit_rows)
         density_logit = sigma_logits if density_at is not None else unblock(sigma_logits, s)
         logits = semantic_logits if logits_at is not None else unblock(semantic_logits, s)
         out = {"density": torch.sigmoid(density_logit), "density_logit": density_logit, "logits": logits,

@@ -29,6 +29,10 @@ from occflownet.train.losses import voxel_targets
 from occflownet.train.recipe import TrainConfig
 
 MAX_DEPTH_POINTS = 40000  # LiDAR points per sample kept for the LSS depth loss
+# Keyframes whose camera hits a data worker keeps (about 2 MB each for a nuScenes-size sweep, so 128 MB): a step
+# reads its keyframe and 2O neighbours, and with samples drawn at random a cache of only 2O + 2 frames missed
+# 5.4 of the 7 frames of a step on the quickstart's world (10 ms each; docs/training.md).
+RAY_CACHE_FRAMES = 64
 
 
 def volume_frames(time_offsets: np.ndarray, flow: bool) -> list[int]:
@@ -57,7 +61,8 @@ class TrainingSamples(Dataset):
                             free_space=FreeSpaceConfig() if cfg.free_space else None,
                             beyond_grid=cfg.free_beyond_grid, box_line_of_sight=cfg.box_line_of_sight,
                             free_stretch=cfg.free_stretch)
-        self.rays = RayBuilder(index, dataroot, ray_cfg, cache_size=2 * cfg.horizon + 2)
+        self.rays = RayBuilder(index, dataroot, ray_cfg, cache_size=max(RAY_CACHE_FRAMES, 2 * cfg.horizon + 2),
+                               sight_frames=2 * cfg.horizon + 2)
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -145,8 +150,8 @@ class TrainingSamples(Dataset):
     def _depth_points(self, position: int, rng: np.random.Generator) -> np.ndarray:
         """float32 [N, 3]: the keyframe's LiDAR points (t = 0) in the current ego frame, for the LSS depth loss."""
         frame = self.rays.frame(position)
-        points = transform_points(invert(self.index.arrays["lidar_ego2global"][position]), frame.points)
-        points = np.unique(points, axis=0)
+        _, first = np.unique(frame.point_index, return_index=True)    # a point seen by two cameras counts once
+        points = transform_points(invert(self.index.arrays["lidar_ego2global"][position]), frame.points[first])
         points = points[GRID.contains(points)]
         if len(points) > MAX_DEPTH_POINTS:
             points = points[rng.choice(len(points), MAX_DEPTH_POINTS, replace=False)]

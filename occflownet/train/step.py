@@ -10,11 +10,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from occflownet.data.free_stretch import FREE_BEFORE_MIN
 from occflownet.model.presets import ModelConfig
 from occflownet.render.disocclusion import disocclude
+from occflownet.render.footprint import ray_footprint
 from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
 from occflownet.render.volume_render import RenderConfig, render_rays
 from occflownet.train.losses import loss_terms
@@ -32,8 +34,10 @@ class LossComputer:
     (``self.needs``)."""
 
     def __init__(self, cfg: TrainConfig, model_cfg: ModelConfig, class_weights: torch.Tensor | None,
-                 render_cfg: RenderConfig | None = None, voxel_weights: torch.Tensor | None = None):
+                 render_cfg: RenderConfig | None = None, voxel_weights: torch.Tensor | None = None,
+                 footprint: bool = True):
         self.cfg = cfg
+        self.footprint = footprint         # False: never run the heads on the footprint only (tests compare)
         self.render_cfg = render_cfg or RenderConfig(density_scale=cfg.density_scale, sigma_is=cfg.sigma_is)
         self.class_weights = class_weights
         self.voxel_weights = voxel_weights   # float32 [18] of the 3D density BCE, or None (unweighted)
@@ -48,16 +52,62 @@ class LossComputer:
     def heads_at_rows(self) -> bool:
         """Whether the model's heads need to run only on the supervised voxels: every term reads the grid there
         (3D labels alone; no rendering and no free prior, which read every voxel)."""
-        return not self.needs & {"density", "logits", *RENDERINGS}
+        return not self.needs & {"density", "logits", *RENDERINGS, *POINT_INPUTS}
+
+    @property
+    def heads_on_footprint(self) -> bool:
+        """Whether the heads need to run only on the rays' footprint (:meth:`footprint_rows`): the terms read the
+        grid through renderings, the rays' points and the 3D labels' rows, and nothing moves voxels (flow) or
+        reads every voxel (the free prior). Exact: a step computes the same loss and gradients either way."""
+        return (self.footprint and not self.cfg.flow and bool(self.needs & {*RENDERINGS, *POINT_INPUTS})
+                and not self.needs & {"density", "logits"})
 
     def head_rows(self, batch: dict, device) -> dict:
         """Keyword arguments of the model's forward for this batch: ``density_at`` / ``logits_at`` (the rows of
-        :func:`~occflownet.train.losses.voxel_targets`) when :attr:`heads_at_rows`, else none (the whole grid)."""
-        if not self.heads_at_rows:
-            return {}
-        rows = batch.get("voxel_rows")
-        return {"density_at": None if rows is None else rows.to(device),
-                "logits_at": batch["occupied_rows"].to(device)}
+        :func:`~occflownet.train.losses.voxel_targets`) when :attr:`heads_at_rows`; the rows of
+        :meth:`footprint_rows` for both when :attr:`heads_on_footprint` (also stored as the batch's
+        "footprint_rows", from which :meth:`inputs` rebuilds the grids); else none (the whole grid)."""
+        if self.heads_at_rows:
+            rows = batch.get("voxel_rows")
+            return {"density_at": None if rows is None else rows.to(device),
+                    "logits_at": batch["occupied_rows"].to(device)}
+        if self.heads_on_footprint and not (self.cfg.uses_3d and batch.get("voxel_rows") is None):
+            rows = self.footprint_rows(batch).to(device)
+            batch["footprint_rows"] = rows
+            return {"density_at": rows, "logits_at": rows}
+        return {}
+
+    def footprint_rows(self, batch: dict) -> torch.Tensor:
+        """int64 [K], ascending rows of the batch's flattened grids [B·X·Y·Z]: every voxel that this step's terms
+        can read — the footprint (:func:`~occflownet.render.footprint.ray_footprint`) of the batch's rays up to
+        the rendering's far end (or their free stretch's end, if beyond) and of its free rays, in the grid of the
+        sample each ray's volume belongs to; the voxels holding the rays' points; the 3D labels' rows."""
+        grid, far = self.render_cfg.grid, self.render_cfg.far
+        samples = int(batch["images"].shape[0])
+        source = batch["volume_source"].numpy()
+        ends = np.maximum(far, batch["ray_free_ends"].numpy()) if "before_opacity" in self.needs else far
+        rays = [(batch["ray_origins"].numpy(), batch["ray_directions"].numpy(), ends,
+                 source[batch["ray_volume"].numpy()])]
+        if "free_origins" in batch:
+            rays.append((batch["free_origins"].numpy(), batch["free_directions"].numpy(), far,
+                         source[batch["free_volume"].numpy()]))
+        mask = np.zeros((samples, *grid.shape), dtype=bool)
+        for origins, directions, t_end, sample in rays:
+            t_end = np.broadcast_to(np.asarray(t_end, dtype=np.float64), (len(origins),))
+            for b in range(samples):
+                mine = sample == b
+                if mine.any():
+                    mask[b] |= ray_footprint(origins[mine], directions[mine], t_end[mine], grid)
+        if self.needs & set(POINT_INPUTS):
+            o, d = batch["ray_origins"].numpy(), batch["ray_directions"].numpy()
+            ijk = grid.index_of(o + batch["ray_depths"].numpy()[:, None] * d)
+            inside = ((ijk >= 0) & (ijk < np.asarray(grid.shape))).all(axis=1)
+            b = source[batch["ray_volume"].numpy()]
+            mask[(b[inside], *ijk[inside].T)] = True
+        rows = np.flatnonzero(mask.reshape(-1))
+        if self.cfg.uses_3d:          # (with the voxel mask: footprint mode is off without one)
+            rows = np.union1d(rows, np.union1d(batch["voxel_rows"].numpy(), batch["occupied_rows"].numpy()))
+        return torch.from_numpy(rows.astype(np.int64))
 
     def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None,
                  step: int | None = None) -> dict:
@@ -82,6 +132,8 @@ class LossComputer:
           [B, N, 4, 4], "depth_points" B × [P_b, 3], "occ_semantics" [B, X, Y, Z], "occ_mask" [B, X, Y, Z]).
         """
         density, logits = outputs["density"].float(), outputs["logits"].float()
+        if density.dim() == 1 and "footprint_rows" in batch:       # heads on the footprint: back onto the grids
+            density, logits = self._on_grids(density, batch), self._on_grids(logits, batch)
         found = {"density": density, "logits": logits, "depth_bins": self.depth_bins.to(device),
                  "class_weights": None if self.class_weights is None else self.class_weights.to(device),
                  "voxel_weights": None if self.voxel_weights is None else self.voxel_weights.to(device)}
@@ -97,7 +149,7 @@ class LossComputer:
         if "depth_prob" in self.needs:
             found.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"])
         if self.needs & {*RENDERINGS, *POINT_INPUTS}:
-            volumes = self.volumes(self.render_density(density, outputs), logits, batch, device)
+            volumes = self.volumes(self.render_density(density, outputs, batch), logits, batch, device)
             found.update(self.renderings(volumes, batch, device, generator))
             if self.needs & set(POINT_INPUTS):
                 found.update(self.point_values(volumes, batch, device))
@@ -110,7 +162,7 @@ class LossComputer:
             found[name] = [v.to(device) for v in value] if isinstance(value, list) else value.to(device)
         return found
 
-    def render_density(self, density: torch.Tensor, outputs: dict) -> torch.Tensor:
+    def render_density(self, density: torch.Tensor, outputs: dict, batch: dict | None = None) -> torch.Tensor:
         """σ [B, X, Y, Z] as rendering reads it: ``density`` (the model's, as float32); with ``density_logit_clip``
         M > 0 sigmoid(clamp(logit, -M, M)) whose gradient passes the clamp straight through (:func:`straight_clamp`);
         with ``density_grad_floor`` M > 0 the model's σ whose gradient is at least the sigmoid's at ±M
@@ -119,9 +171,18 @@ class LossComputer:
         if clip <= 0 and floor <= 0:
             return density
         logit = outputs["density_logit"].float()
+        if logit.dim() == 1 and batch is not None and "footprint_rows" in batch:   # heads on the footprint
+            logit = self._on_grids(logit, batch)
         if clip > 0:
             logit = straight_clamp(logit, clip)
         return SigmoidGradientFloor.apply(logit, floor) if floor > 0 else torch.sigmoid(logit)
+
+    def _on_grids(self, values: torch.Tensor, batch: dict) -> torch.Tensor:
+        """values [K, ...] at the batch's "footprint_rows" [K] → [B, X, Y, Z, ...], zero off the footprint (read
+        there, if at all, with weight 0: ``occflownet.render.footprint``); the gradient flows to ``values``."""
+        shape = (int(batch["images"].shape[0]), *self.render_cfg.grid.shape)
+        grid = values.new_zeros((int(np.prod(shape)), *values.shape[1:]))
+        return grid.index_copy(0, batch["footprint_rows"], values).reshape(*shape, *values.shape[1:])
 
     @staticmethod
     def _at_rows(values: torch.Tensor, rows: torch.Tensor | None, given: bool, device) -> torch.Tensor:
