@@ -28,13 +28,21 @@ def dynamic_mask(logits: torch.Tensor, classes: Sequence[int] = DYNAMIC_FILTER_C
 
 
 def disocclude(density: torch.Tensor, logits: torch.Tensor,
-               classes: Sequence[int] = DYNAMIC_FILTER_CLASSES) -> torch.Tensor:
-    """A copy of density [..., X, Y, Z] with σ = 0 where argmax(logits [..., X, Y, Z, C]) ∈ ``classes``.
+               classes: Sequence[int] = DYNAMIC_FILTER_CLASSES, rows: torch.Tensor | None = None) -> torch.Tensor:
+    """A copy of density [..., X, Y, Z] with σ = 0 where argmax(logits [..., X, Y, Z, C]) ∈ ``classes``; with
+    ``rows`` (long [K]) the logits are [K, C] at those rows of the flattened density (the other voxels keep σ).
 
     Differentiable with respect to the density of the voxels that are kept; the input is not modified.
     """
-    if tuple(logits.shape[:-1]) != tuple(density.shape):
+    if rows is not None:
+        if logits.dim() != 2 or rows.shape != logits.shape[:1]:
+            raise ValueError(f"logits at rows must be [K, C] for rows [K], got {tuple(logits.shape)} and "
+                             f"{tuple(rows.shape)}")
+        mask = torch.zeros(density.numel(), dtype=torch.bool, device=density.device)
+        mask = mask.index_put((rows,), dynamic_mask(logits.detach(), classes)).reshape(density.shape)
+    elif tuple(logits.shape[:-1]) != tuple(density.shape):
         raise ValueError(f"density {tuple(density.shape)} and logits {tuple(logits.shape)} disagree: logits must "
                          "be density's shape plus a class dimension")
-    mask = dynamic_mask(logits.detach(), classes)
+    else:
+        mask = dynamic_mask(logits.detach(), classes)
     return torch.where(mask, torch.zeros_like(density), density)

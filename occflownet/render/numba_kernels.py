@@ -84,37 +84,51 @@ def _sigma_at(sigma, vol, px, py, pz, lower, inv_voxel, shape, rows, cw):
     return s
 
 
+@njit(cache=True, inline="always")
+def _logit_row(row, shift, logit_rows):
+    """The logits table's row of the voxel at σ row ``row`` (``shift`` moves it to the ray's logits volume; through
+    ``logit_rows`` when that table is given: -1 = the voxel has no row, it reads zero)."""
+    if logit_rows.shape[0] == 0:
+        return row + shift
+    return logit_rows[row + shift]
+
+
 @njit(cache=True)
-def _add_cell_semantics(rows, acc, sem, logits, shift):
-    """A ray leaves a cell: add Σ_k acc_k · logits[rows_k + shift] to the semantics ``sem`` [C] (corners outside:
-    -1; ``shift`` moves a σ row to the ray's logits volume)."""
+def _add_cell_semantics(rows, acc, sem, logits, shift, logit_rows):
+    """A ray leaves a cell: add Σ_k acc_k · logits[row of corner k] to the semantics ``sem`` [C] (corners outside:
+    -1; :func:`_logit_row` finds the row)."""
     for c in range(8):
         if rows[c] >= 0 and acc[c] != 0.0:
-            for ch in range(sem.shape[0]):
-                sem[ch] += acc[c] * logits[rows[c] + shift, ch]
+            lr = _logit_row(rows[c], shift, logit_rows)
+            if lr >= 0:
+                for ch in range(sem.shape[0]):
+                    sem[ch] += acc[c] * logits[lr, ch]
 
 
 @njit(cache=True)
-def _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits, shift):
-    """A ray leaves a cell: add acc_s_k to grad_sigma[rows_k] and acc_w_k · g to grad_logits[rows_k + shift] (either
-    table may be empty: not needed). Corners with row -1 are skipped."""
+def _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits, shift, logit_rows):
+    """A ray leaves a cell: add acc_s_k to grad_sigma[rows_k] and acc_w_k · g to grad_logits[logits row of corner k]
+    (either table may be empty: not needed). Corners with row -1, and logits rows -1, are skipped."""
     for c in range(8):
         row = rows[c]
         if row >= 0:
             if grad_sigma.shape[0] > 0:
                 grad_sigma[row] += acc_s[c]
             if grad_logits.shape[0] > 0 and acc_w[c] != 0.0:
-                for ch in range(g.shape[0]):
-                    grad_logits[row + shift, ch] += acc_w[c] * g[ch]
+                lr = _logit_row(row, shift, logit_rows)
+                if lr >= 0:
+                    for ch in range(g.shape[0]):
+                        grad_logits[lr, ch] += acc_w[c] * g[ch]
 
 
 @njit(parallel=True, cache=True)
-def render_forward(sigma, logits, origins, directions, edges, ray_volume, ray_logits, order, bias, lower, voxel_size,
-                   shape, near, far, scale, uniform_mix, depth, semantics, weight_sum, weights, sigma_out, t_out,
-                   a_out, b_out):
+def render_forward(sigma, logits, logit_rows, origins, directions, edges, ray_volume, ray_logits, order, bias, lower,
+                   voxel_size, shape, near, far, scale, uniform_mix, depth, semantics, weight_sum, weights, sigma_out,
+                   t_out, a_out, b_out):
     """Render every ray (see module docstring).
 
-    In: sigma [n·X·Y·Z] (flat σ volumes), logits [m·X·Y·Z, C] (flat logits volumes), origins/directions [R, 3]
+    In: sigma [n·X·Y·Z] (flat σ volumes), logits [m·X·Y·Z, C] (flat logits volumes) or, with ``logit_rows``
+    int64 [m·X·Y·Z] (the row of each voxel, -1: none, reads zero; size 0: no table), [K, C]; origins/directions [R, 3]
     (ego frame of the grid, unit directions; float64), edges [R, M + 1] coarse bin edges (float64), ray_volume [R]
     int64 (the σ volume of each ray), ray_logits [R] int64 (its logits volume), order [R] int64,
     bias [R] fine-draw offsets (0.5 = mid-bin), lower [3], voxel_size, shape [3] int64, near (scalar), far [R]
@@ -178,7 +192,7 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, ray_lo
             t = t_out[r, i]
             i0, j0, k0, fx, fy, fz = _cell(ox + t * dx, oy + t * dy, oz + t * dz, lower, inv_voxel, shape)
             if not (i0 == ci and j0 == cj and k0 == ck):
-                _add_cell_semantics(rows, acc, sem, logits, shift)
+                _add_cell_semantics(rows, acc, sem, logits, shift, logit_rows)
                 ci, cj, ck = i0, j0, k0
                 _corners(vol, ci, cj, ck, shape, rows)
                 acc[:] = 0.0
@@ -197,7 +211,7 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, ray_lo
             wsum += w
             weights[r, i] = w
             sigma_out[r, i] = s
-        _add_cell_semantics(rows, acc, sem, logits, shift)
+        _add_cell_semantics(rows, acc, sem, logits, shift, logit_rows)
         depth[r] = dep
         weight_sum[r] = wsum
         for ch in range(channels):
@@ -205,8 +219,8 @@ def render_forward(sigma, logits, origins, directions, edges, ray_volume, ray_lo
 
 
 @njit(parallel=True, cache=True)
-def sigma_sample_grads(logits, origins, directions, ray_volume, ray_logits, order, lower, voxel_size, shape, scale,
-                       weights, sigma_s, t_s, a_s, b_s, g_depth, g_sem, g_wsum, g_sigma_s):
+def sigma_sample_grads(logits, logit_rows, origins, directions, ray_volume, ray_logits, order, lower, voxel_size,
+                       shape, scale, weights, sigma_s, t_s, a_s, b_s, g_depth, g_sem, g_wsum, g_sigma_s):
     """∂L/∂σ_i for every fine sample → g_sigma_s [R, N] (written). Rays in parallel (in ``order``); reads only.
 
     weights, sigma_s, t_s, a_s, b_s [R, N] from ``render_forward``; g_depth [R], g_sem [R, C], g_wsum [R].
@@ -233,9 +247,10 @@ def sigma_sample_grads(logits, origins, directions, ray_volume, ray_logits, orde
                 _corners(vol, ci, cj, ck, shape, rows)
                 for c in range(8):  # q_k = g_sem · logits[v_k]
                     acc = 0.0
-                    if rows[c] >= 0:
+                    lr = _logit_row(rows[c], shift, logit_rows) if rows[c] >= 0 else -1
+                    if lr >= 0:
                         for ch in range(channels):
-                            acc += g_sem[r, ch] * logits[rows[c] + shift, ch]
+                            acc += g_sem[r, ch] * logits[lr, ch]
                     q[c] = acc
             _corner_weights(fx, fy, fz, cw)
             sem_dot = 0.0
@@ -257,8 +272,9 @@ def sigma_sample_grads(logits, origins, directions, ray_volume, ray_logits, orde
 
 @njit(parallel=True, cache=True)
 def scatter_grads(origins, directions, ray_volume, ray_logits, order, lower, voxel_size, shape, weights, t_s,
-                  g_sigma_s, g_sem, n_groups, grad_sigma, grad_logits):
-    """Accumulate ∂L/∂σ into grad_sigma [n·X·Y·Z] and ∂L/∂logits into grad_logits [m·X·Y·Z, C] (both added to).
+                  g_sigma_s, g_sem, n_groups, grad_sigma, grad_logits, logit_rows):
+    """Accumulate ∂L/∂σ into grad_sigma [n·X·Y·Z] and ∂L/∂logits into grad_logits [m·X·Y·Z, C], or [K, C] through
+    ``logit_rows`` (as in ``render_forward``; each voxel has its own row) (both added to).
 
     Parallel over ``n_groups`` owners of voxel slabs: group g writes only voxels whose x index i has
     ``(i // 8) % n_groups == g``, so no two threads write the same element and the result does not depend on the
@@ -287,7 +303,7 @@ def scatter_grads(origins, directions, ray_volume, ray_logits, order, lower, vox
                 i0, j0, k0, fx, fy, fz = _cell(ox + t * dx, oy + t * dy, oz + t * dz, lower, inv_voxel, shape)
                 if not (i0 == ci and j0 == cj and k0 == ck):
                     if owned:
-                        _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits, shift)
+                        _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits, shift, logit_rows)
                     ci, cj, ck = i0, j0, k0
                     _corners(vol, ci, cj, ck, shape, rows)
                     owned = False
@@ -304,4 +320,4 @@ def scatter_grads(origins, directions, ray_volume, ray_logits, order, lower, vox
                         acc_w[c] += w * cw[c]
                         acc_s[c] += gs * cw[c]
             if owned:
-                _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits, shift)
+                _scatter_cell(rows, acc_w, acc_s, g, grad_sigma, grad_logits, shift, logit_rows)

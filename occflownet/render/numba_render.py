@@ -1,7 +1,8 @@
 """The fast CPU rendering path: ``numba_kernels`` wrapped as a ``torch.autograd.Function``.
 
-``NumbaRender.apply(density, logits_flat, origins, directions, edges, ray_volume, ray_logits, bias, far, cfg)``:
-density [n, X, Y, Z] (σ), logits_flat [m·X·Y·Z, C] (channels-last logits, flattened), origins/directions [R, 3]
+``NumbaRender.apply(density, logits_flat, origins, directions, edges, ray_volume, ray_logits, bias, far, cfg,
+logit_rows)``: density [n, X, Y, Z] (σ), logits_flat [m·X·Y·Z, C] (channels-last logits, flattened) or [K, C] with
+logit_rows int64 [m·X·Y·Z] (the row of each voxel, -1: none, reads zero; None: no table), origins/directions [R, 3]
 (ego frame of ``cfg.grid``), edges [R, M + 1] jittered coarse edges, ray_volume [R] long (σ volume), ray_logits
 [R] long (logits volume), bias [R] fine-draw offsets → depth [R], semantics [R, C], weight_sum [R] (differentiable
 in density and logits), then weights,
@@ -64,19 +65,22 @@ def cache_friendly_order(origins: torch.Tensor, directions: torch.Tensor, ray_vo
 class NumbaRender(torch.autograd.Function):
 
     @staticmethod
-    def forward(ctx, density, logits_flat, origins, directions, edges, ray_volume, ray_logits, bias, far, cfg):
+    def forward(ctx, density, logits_flat, origins, directions, edges, ray_volume, ray_logits, bias, far, cfg,
+                logit_rows=None):
         n_rays, n_fine, channels = origins.shape[0], cfg.n_fine, logits_flat.shape[1]
         new = origins.new_empty
         depth, semantics, weight_sum = new(n_rays), new(n_rays, channels), new(n_rays)
         weights, sigma, t, a, b = (new(n_rays, n_fine) for _ in range(5))
         order = cache_friendly_order(origins, directions, ray_volume)
-        arrays = [_np(density.reshape(-1)), _np(logits_flat)] + [_f64(x) for x in (origins, directions, edges)]
+        rows = np.zeros(0, np.int64) if logit_rows is None else _np(logit_rows).astype(np.int64, copy=False)
+        arrays = [_np(density.reshape(-1)), _np(logits_flat), rows] + [_f64(x) for x in (origins, directions, edges)]
         with numba_threads(cfg.threads):
             kernels.render_forward(*arrays, _np(ray_volume), _np(ray_logits), order, _f64(bias), *_grid_args(cfg.grid),
                                    float(cfg.near), _f64(far), float(cfg.density_scale), float(cfg.uniform_mix),
                                    *(x.numpy() for x in (depth, semantics, weight_sum, weights, sigma, t, a, b)))
         ctx.cfg = cfg
         ctx.order = order
+        ctx.logit_rows = rows
         ctx.density_shape = density.shape
         ctx.save_for_backward(logits_flat, origins, directions, ray_volume, ray_logits, weights, sigma, t, a, b)
         ctx.mark_non_differentiable(weights, sigma, t, a, b)
@@ -98,9 +102,9 @@ class NumbaRender(torch.autograd.Function):
         g_sigma_s = torch.zeros_like(weights)
         with numba_threads(cfg.threads) as threads:
             if need_sigma:
-                kernels.sigma_sample_grads(_np(logits_flat), *geometry, lower, voxel_size, shape,
+                kernels.sigma_sample_grads(_np(logits_flat), ctx.logit_rows, *geometry, lower, voxel_size, shape,
                                            float(cfg.density_scale), *(_np(x) for x in (weights, sigma, t, a, b)),
                                            _np(g_depth), _np(g_sem), _np(g_wsum), g_sigma_s.numpy())
             kernels.scatter_grads(*geometry, lower, voxel_size, shape, _np(weights), _np(t), g_sigma_s.numpy(),
-                                  _np(g_sem), threads, grad_sigma.view(-1).numpy(), grad_logits.numpy())
-        return (grad_sigma if need_sigma else None, grad_logits if need_logits else None) + (None,) * 8
+                                  _np(g_sem), threads, grad_sigma.view(-1).numpy(), grad_logits.numpy(), ctx.logit_rows)
+        return (grad_sigma if need_sigma else None, grad_logits if need_logits else None) + (None,) * 9

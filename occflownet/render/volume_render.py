@@ -9,7 +9,10 @@ Inputs (one call renders a batch of rays through a batch of volumes):
   [B·T, ...] volume and picks the copy per ray);
 - ``logits_index``: long [B] (optional): the logits volume of each density volume, so that several density volumes
   (a frame's disoccluded copy beside the prediction) read one logits volume [B_l, X, Y, Z, C] without copying it;
-  default: logits volume b for density volume b.
+  default: logits volume b for density volume b;
+- ``logits_rows``: long [B_l·X·Y·Z] (optional): the logits are given as a table [K, C] instead, ``logits_rows`` the
+  row of each voxel of the B_l logits volumes (flattened as [B_l, X, Y, Z]), -1 for a voxel without one (it reads
+  zero logits): the voxels the rays can read are far fewer than the grid's (``occflownet.render.footprint``).
 
 Method (paper section 3.4 and the official code):
 1. coarse: ``n_coarse`` jittered uniform bins in [near, far]; σ looked up trilinearly (no gradient: the coarse
@@ -137,16 +140,20 @@ def _check_logits_index(logits_index, n_density: int, n_logits: int, device) -> 
     return logits_index.long().to(device)
 
 
-def _check_inputs(density, logits, origins, directions, batch_index, grid: Grid):
+def _check_inputs(density, logits, origins, directions, batch_index, grid: Grid, logits_rows=None):
     if density.dim() == 3:
         density = density.unsqueeze(0)
-    if logits.dim() == 4:
+    if logits.dim() == 4 and logits_rows is None:
         logits = logits.unsqueeze(0)
     if density.dim() != 4 or tuple(density.shape[1:]) != tuple(grid.shape):
         raise ValueError(f"density must be [B, {', '.join(map(str, grid.shape))}], got {tuple(density.shape)}")
-    if logits.dim() != 5 or tuple(logits.shape[1:4]) != tuple(density.shape[1:]):
+    if logits_rows is not None:
+        n_logits = _check_logits_rows(logits, logits_rows, grid)
+    elif logits.dim() != 5 or tuple(logits.shape[1:4]) != tuple(density.shape[1:]):
         raise ValueError(f"logits must be [B, X, Y, Z, C] on density's grid {tuple(density.shape[1:])}, "
                          f"got {tuple(logits.shape)}")
+    else:
+        n_logits = logits.shape[0]
     if origins.dim() != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
         raise ValueError(f"origins and directions must both be [R, 3], got {tuple(origins.shape)} and "
                          f"{tuple(directions.shape)}")
@@ -164,7 +171,26 @@ def _check_inputs(density, logits, origins, directions, batch_index, grid: Grid)
         if n_rays and (int(batch_index.min()) < 0 or int(batch_index.max()) >= n_vol):
             raise ValueError(f"batch_index values must lie in [0, {n_vol}), got [{int(batch_index.min())}, "
                              f"{int(batch_index.max())}]")
-    return density, logits, batch_index
+    return density, batch_index, n_logits
+
+
+def _check_logits_rows(logits: torch.Tensor, rows: torch.Tensor, grid: Grid) -> int:
+    """Checks a logits table [K, C] and its ``logits_rows`` [B_l·X·Y·Z] (module docstring) → B_l."""
+    if logits.dim() != 2:
+        raise ValueError(f"logits given with logits_rows must be [K, C], got {tuple(logits.shape)}")
+    if rows.dim() != 1 or rows.numel() % grid.num_voxels or rows.dtype.is_floating_point or rows.dtype == torch.bool:
+        raise ValueError(f"logits_rows must be an integer [B_l·{grid.num_voxels}], got {rows.dtype} "
+                         f"{tuple(rows.shape)}")
+    if rows.numel() and (int(rows.min()) < -1 or int(rows.max()) >= logits.shape[0]):
+        raise ValueError(f"logits_rows values must lie in [-1, {logits.shape[0]})")
+    return rows.numel() // grid.num_voxels
+
+
+def _dense_logits(logits: torch.Tensor, rows: torch.Tensor, grid: Grid) -> torch.Tensor:
+    """logits [K, C] at ``rows`` [B_l·X·Y·Z] → [B_l, X, Y, Z, C] (zero where the row is -1), differentiable."""
+    padded = torch.cat([logits, logits.new_zeros(1, logits.shape[1])])
+    picked = padded[torch.where(rows >= 0, rows, logits.shape[0]).long()]
+    return picked.reshape(-1, *grid.shape, logits.shape[1])
 
 
 def _use_numba(lookup: str, device: torch.device) -> bool:
@@ -191,18 +217,21 @@ def _use_numba(lookup: str, device: torch.device) -> bool:
 def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor,
                 cfg: RenderConfig = RenderConfig(), generator: torch.Generator | None = None,
                 batch_index: torch.Tensor | None = None, far: torch.Tensor | None = None,
-                logits_index: torch.Tensor | None = None) -> RenderOutput:
+                logits_index: torch.Tensor | None = None, logits_rows: torch.Tensor | None = None) -> RenderOutput:
     """Render depth and semantic logits for R rays through the voxel volume(s); see the module docstring.
 
     density [B, X, Y, Z] or [X, Y, Z]; logits [B_l, X, Y, Z, C] or [X, Y, Z, C]; origins, directions [R, 3]
     (ego frame, unit directions); batch_index [R] long (required when B > 1); logits_index [B] long (the logits
-    volume of each density volume; None: the same index, B_l = B); far [R] (metres, > ``cfg.near``):
+    volume of each density volume; None: the same index, B_l = B); logits_rows [B_l·X·Y·Z] long: logits is a table
+    [K, C] and this its row per voxel (module docstring); far [R] (metres, > ``cfg.near``):
     each ray's own far end instead of ``cfg.far`` (a segment: its weight sum is the opacity up to there).
     ``generator`` drives the coarse jitter (and stratified fine draws) for reproducible sampling.
     """
     grid = cfg.grid
-    density, logits, batch_index = _check_inputs(density, logits, origins, directions, batch_index, grid)
-    logits_index = _check_logits_index(logits_index, density.shape[0], logits.shape[0], density.device)
+    density, batch_index, n_logits = _check_inputs(density, logits, origins, directions, batch_index, grid,
+                                                   logits_rows)
+    logits = logits.unsqueeze(0) if logits.dim() == 4 else logits
+    logits_index = _check_logits_index(logits_index, density.shape[0], n_logits, density.device)
     if cfg.sigma_is == "opacity":
         density = opacity_to_extinction(density, grid.voxel_size)
     n_rays, channels = origins.shape[0], logits.shape[-1]
@@ -222,11 +251,14 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
             bias = torch.full((n_rays,), 0.5, device=device, dtype=dtype)
         depth, semantics, weight_sum, weights, sigma, t_samples, t_starts, t_ends = NumbaRender.apply(
             density, logits.reshape(-1, channels), origins, directions, edges, batch_index, logits_index[batch_index],
-            bias, torch.full((n_rays,), float(cfg.far), dtype=torch.float64) if far is None else far, cfg)
+            bias, torch.full((n_rays,), float(cfg.far), dtype=torch.float64) if far is None else far, cfg,
+            logits_rows)
         return RenderOutput(depth=depth, semantics=semantics, weight_sum=weight_sum, weights=weights, sigma=sigma,
                             t_samples=t_samples, t_starts=t_starts, t_ends=t_ends)
 
     # Reference path: plain autograd through F.grid_sample lookups (GPU; on CPU the tests' and benchmarks' reference).
+    if logits_rows is not None:
+        logits = _dense_logits(logits, logits_rows, grid)
     with torch.no_grad():
         mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
         points = origins[:, None, :] + mids[..., None] * directions[:, None, :]

@@ -57,10 +57,11 @@ class LossComputer:
     @property
     def heads_on_footprint(self) -> bool:
         """Whether the heads need to run only on the rays' footprint (:meth:`footprint_rows`): the terms read the
-        grid through renderings, the rays' points and the 3D labels' rows, and nothing moves voxels (flow) or
-        reads every voxel (the free prior). Exact: a step computes the same loss and gradients either way."""
-        return (self.footprint and not self.cfg.flow and bool(self.needs & {*RENDERINGS, *POINT_INPUTS})
-                and not self.needs & {"density", "logits"})
+        grid through renderings and the rays' points only — not with 3D labels, not with flow (which moves
+        voxels), not with the free prior (which reads every voxel). Exact: a step computes the same loss and
+        gradients either way (tests/test_train_losses.py)."""
+        return (self.footprint and not self.cfg.flow and not self.cfg.uses_3d
+                and bool(self.needs & {*RENDERINGS, *POINT_INPUTS}) and not self.needs & {"density", "logits"})
 
     def head_rows(self, batch: dict, device) -> dict:
         """Keyword arguments of the model's forward for this batch: ``density_at`` / ``logits_at`` (the rows of
@@ -71,7 +72,7 @@ class LossComputer:
             rows = batch.get("voxel_rows")
             return {"density_at": None if rows is None else rows.to(device),
                     "logits_at": batch["occupied_rows"].to(device)}
-        if self.heads_on_footprint and not (self.cfg.uses_3d and batch.get("voxel_rows") is None):
+        if self.heads_on_footprint:
             rows = self.footprint_rows(batch).to(device)
             batch["footprint_rows"] = rows
             return {"density_at": rows, "logits_at": rows}
@@ -81,7 +82,7 @@ class LossComputer:
         """int64 [K], ascending rows of the batch's flattened grids [B·X·Y·Z]: every voxel that this step's terms
         can read — the footprint (:func:`~occflownet.render.footprint.ray_footprint`) of the batch's rays up to
         the rendering's far end (or their free stretch's end, if beyond) and of its free rays, in the grid of the
-        sample each ray's volume belongs to; the voxels holding the rays' points; the 3D labels' rows."""
+        sample each ray's volume belongs to, and the voxels holding the rays' points."""
         grid, far = self.render_cfg.grid, self.render_cfg.far
         samples = int(batch["images"].shape[0])
         source = batch["volume_source"].numpy()
@@ -104,10 +105,7 @@ class LossComputer:
             inside = ((ijk >= 0) & (ijk < np.asarray(grid.shape))).all(axis=1)
             b = source[batch["ray_volume"].numpy()]
             mask[(b[inside], *ijk[inside].T)] = True
-        rows = np.flatnonzero(mask.reshape(-1))
-        if self.cfg.uses_3d:          # (with the voxel mask: footprint mode is off without one)
-            rows = np.union1d(rows, np.union1d(batch["voxel_rows"].numpy(), batch["occupied_rows"].numpy()))
-        return torch.from_numpy(rows.astype(np.int64))
+        return torch.from_numpy(np.flatnonzero(mask.reshape(-1)).astype(np.int64))
 
     def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None,
                  step: int | None = None) -> dict:
@@ -120,7 +118,8 @@ class LossComputer:
     def inputs(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None) -> dict:
         """The inputs the terms name (``self.needs``), each computed once (and a few cheap others):
 
-        - model outputs as float32: "density" [B, X, Y, Z], "logits" [B, X, Y, Z, 17], "depth_prob" [B, N, D, h, w];
+        - model outputs as float32: "density" [B, X, Y, Z], "logits" [B, X, Y, Z, 17] (with the heads on the
+          footprint [K, 17] at the batch's "footprint_rows", σ zero off them), "depth_prob" [B, N, D, h, w];
           "feature_intrinsics" [B, N, 3, 3]; "voxel_sigma" [K] and "occupied_logits" [K', 17], σ and the logits at
           the batch's "voxel_rows" (every voxel without) and "occupied_rows" (the model gave them at those rows
           when :meth:`head_rows` asked it to, else they are picked from the grid); "voxel_labels" [K], the
@@ -132,8 +131,8 @@ class LossComputer:
           [B, N, 4, 4], "depth_points" B × [P_b, 3], "occ_semantics" [B, X, Y, Z], "occ_mask" [B, X, Y, Z]).
         """
         density, logits = outputs["density"].float(), outputs["logits"].float()
-        if density.dim() == 1 and "footprint_rows" in batch:       # heads on the footprint: back onto the grids
-            density, logits = self._on_grids(density, batch), self._on_grids(logits, batch)
+        if density.dim() == 1 and "footprint_rows" in batch:  # heads on the footprint: σ back onto the grids; the
+            density = self._on_grids(density, batch)          # logits stay a table [K, 17] (FrameVolumes)
         found = {"density": density, "logits": logits, "depth_bins": self.depth_bins.to(device),
                  "class_weights": None if self.class_weights is None else self.class_weights.to(device),
                  "voxel_weights": None if self.voxel_weights is None else self.voxel_weights.to(device)}
@@ -201,7 +200,7 @@ class LossComputer:
             made["rendered"] = render_rays(*volumes.grids, batch["ray_origins"].to(device),
                                            batch["ray_directions"].to(device), self.render_cfg, generator=generator,
                                            batch_index=batch["ray_volume"].to(device),
-                                           logits_index=volumes.logits_index)
+                                           logits_index=volumes.logits_index, logits_rows=volumes.logits_rows)
         if "free_opacity" in wanted:
             made["free_opacity"] = self._free_opacity(volumes, batch, device, generator)
         if "before_opacity" in wanted:
@@ -216,11 +215,17 @@ class LossComputer:
             parts = [PackedMoves.from_arrays(**moves) for moves, _ in batch["flow"]]
             packed = PackedMoves.concat(parts, [offset for _, offset in batch["flow"]]).to(device)
             return FrameVolumes(*warp_volumes(density, logits, source, packed, mover=self.cfg.flow_mover))
+        rows = batch.get("footprint_rows") if logits.dim() == 2 else None
         dens = density[source]
         if self.cfg.disocclusion and bool(temporal.any()):
             # disocclude each sample's volume once, then give its copy to the temporal volumes
-            dens = torch.where(temporal[:, None, None, None], disocclude(density, logits)[source], dens)
-        return FrameVolumes(dens, logits, source)   # the frames of a sample read its logits: no copy of them
+            cleared = disocclude(density, logits, rows=rows)[source]
+            dens = torch.where(temporal[:, None, None, None], cleared, dens)
+        if rows is None:
+            return FrameVolumes(dens, logits, source)   # the frames of a sample read its logits: no copy of them
+        table = torch.full((density.numel(),), -1, dtype=torch.long, device=device)
+        table[rows] = torch.arange(len(rows), device=device)
+        return FrameVolumes(dens, logits, source, table)
 
     def point_values(self, volumes: "FrameVolumes", batch: dict, device) -> dict:
         """:data:`POINT_INPUTS` of the batch's rays whose LiDAR point (origin + depth · direction, current ego frame)
@@ -236,7 +241,8 @@ class LossComputer:
         volume = batch["ray_volume"].to(device)[inside]
         logits_volume = volume if volumes.logits_index is None else volumes.logits_index[volume]
         i, j, k = ijk[inside].unbind(1)
-        return {"point_logits": volumes.logits[logits_volume, i, j, k], "point_sigma": volumes.density[volume, i, j, k],
+        return {"point_logits": volumes.logits_at(logits_volume, i, j, k),
+                "point_sigma": volumes.density[volume, i, j, k],
                 "point_labels": batch["ray_labels"].to(device)[inside]}
 
     def _free_opacity(self, volumes: "FrameVolumes", batch: dict, device, generator) -> torch.Tensor:
@@ -254,7 +260,8 @@ class LossComputer:
             logits_index = slot_volume if logits_index is None else logits_index[slot_volume]
         return render_rays(density, volumes.logits, batch["free_origins"].to(device),
                            batch["free_directions"].to(device), self.render_cfg, generator=generator,
-                           batch_index=ray_volume, logits_index=logits_index).weight_sum
+                           batch_index=ray_volume, logits_index=logits_index,
+                           logits_rows=volumes.logits_rows).weight_sum
 
     def _before_opacity(self, volumes: "FrameVolumes", batch: dict, device, generator) -> torch.Tensor:
         """Opacity [S] of the free stretches in front of the points of ``free_rays_per_step`` rays per sample (every
@@ -269,7 +276,7 @@ class LossComputer:
         out = render_rays(*volumes.grids, batch["ray_origins"][keep].to(device),
                           batch["ray_directions"][keep].to(device), self.render_cfg, generator=generator,
                           batch_index=batch["ray_volume"][keep].to(device), far=ends.to(device),
-                          logits_index=volumes.logits_index)
+                          logits_index=volumes.logits_index, logits_rows=volumes.logits_rows)
         return out.weight_sum
 
 
@@ -303,11 +310,23 @@ class SigmoidGradientFloor(torch.autograd.Function):
 class FrameVolumes:
     """What the batch's rays render through: density [N, X, Y, Z] per frame volume (``ray_volume`` indexes it) and
     logits [L, X, Y, Z, 17], volume n reading logits volume ``logits_index[n]`` (long [N]; None: L = N, one each).
-    Without flow the frames of a sample share its predicted logits (L = B); with flow each frame has its own."""
+    Without flow the frames of a sample share its predicted logits (L = B); with flow each frame has its own.
+    With the heads on the footprint the logits are a table [K, 17] and ``logits_rows`` (long [L·X·Y·Z]) the row of
+    each voxel, -1 off the footprint (``render_rays``' ``logits_rows``)."""
 
     density: torch.Tensor
     logits: torch.Tensor
     logits_index: torch.Tensor | None = None
+    logits_rows: torch.Tensor | None = None
+
+    def logits_at(self, volume: torch.Tensor, i: torch.Tensor, j: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+        """[P, 17]: the logits of voxels (i, j, k) [P] of logits volumes ``volume`` [P] (zero off the footprint)."""
+        if self.logits_rows is None:
+            return self.logits[volume, i, j, k]
+        x, y, z = self.density.shape[1:]
+        rows = self.logits_rows[((volume * x + i) * y + j) * z + k]
+        padded = torch.cat([self.logits, self.logits.new_zeros(1, self.logits.shape[1])])
+        return padded[torch.where(rows >= 0, rows, len(self.logits))]
 
     @property
     def grids(self) -> tuple[torch.Tensor, torch.Tensor]:
