@@ -266,6 +266,46 @@ def test_shared_logits_render_as_their_copies(lookup):
         render_rays(density, logits, origins, dirs, cfg, batch_index=volume, logits_index=torch.tensor([0, 1, 2]))
 
 
+@pytest.mark.parametrize("lookup", ["numba", "grid_sample"])
+def test_logits_as_rows_of_the_footprint_render_as_the_whole_volume(lookup):
+    """logits_rows: the logits given as a table of the rays' footprint only (occflownet.render.footprint), two
+    density volumes sharing logits volume 0 and a third reading volume 1, render the same depths, semantics and
+    weights as the whole logits volumes, with the same gradients; the whole volumes' logits get no gradient off
+    the footprint."""
+    from occflownet.render.footprint import ray_footprint
+
+    density, logits, origins, dirs, volume = _random_case(dtype=torch.float64, n_rays=60)
+    density = torch.cat([density, density[:1] * 0.5])
+    volume = torch.remainder(torch.arange(len(volume)), 3)
+    index = torch.tensor([0, 1, 0])
+    cfg = RenderConfig(far=6.0, grid=SMALL, lookup=lookup, density_scale=1.5)
+    mask = np.zeros((2, *SMALL.shape), dtype=bool)
+    for v in range(3):
+        mine = (volume == v).numpy()
+        mask[int(index[v])] |= ray_footprint(origins[mine].numpy(), dirs[mine].numpy(), cfg.far, SMALL)
+    rows = torch.from_numpy(np.flatnonzero(mask))
+    assert 0.05 < mask.mean() < 0.8                                  # the footprint is a part of the volumes
+    table = torch.full((mask.size,), -1, dtype=torch.long)
+    table[rows] = torch.arange(len(rows))
+    results = []
+    for as_rows in (False, True):
+        d, lg = density.clone().requires_grad_(True), logits.clone().requires_grad_(True)
+        given = lg.reshape(-1, NUM_CLASSES)[rows] if as_rows else lg
+        out = render_rays(d, given, origins, dirs, cfg, torch.Generator().manual_seed(3), volume,
+                          logits_index=index, logits_rows=table if as_rows else None)
+        (out.depth.sum() + out.semantics.square().sum() + out.weight_sum.sum()).backward()
+        results.append((out.depth, out.semantics, out.weight_sum, d.grad, lg.grad))
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    whole_grad = results[0][4].reshape(-1, NUM_CLASSES)
+    assert whole_grad.abs().sum() > 0 and not whole_grad[torch.from_numpy(~mask.reshape(-1))].any()
+    with pytest.raises(ValueError, match="logits_rows values"):
+        render_rays(density, logits.reshape(-1, NUM_CLASSES)[rows], origins, dirs, cfg, batch_index=volume,
+                    logits_index=index, logits_rows=torch.where(table >= 0, table + 1, table))
+    with pytest.raises(ValueError, match=r"must be \[K, C\]"):
+        render_rays(density, logits, origins, dirs, cfg, batch_index=volume, logits_index=index, logits_rows=table)
+
+
 def test_bad_inputs_are_rejected_with_clear_errors():
     density, logits, origins, dirs, volume = _random_case(n_rays=5)
     cfg = RenderConfig(grid=SMALL)

@@ -474,3 +474,59 @@ def test_density_logit_clip_renders_at_the_edge_and_keeps_the_gradient():
                           torch.sigmoid(torch.tensor([-6.0, 0.0])))
     official = _computer()
     assert official.render_density(outputs["density"], outputs) is outputs["density"]
+
+
+FOOTPRINT_OPTIONS = {   # the fitting recipe of docs/ablation.md without the free prior (which reads every voxel)
+    "free_beyond_grid": True, "free_before_point": True, "free_stretch": "points", "box_line_of_sight": True,
+    "ray_sampling": "sqrt-balanced", "point_semantics_weight": 1.0, "point_density_weight": 1.0,
+    "density_grad_floor": 6.0}
+
+
+@pytest.mark.parametrize("options", [{}, FOOTPRINT_OPTIONS], ids=["2d-base", "recipe"])
+def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(options, tmp_path):
+    """A trained tiny checkpoint (occupied voxels of several classes, so disocclusion and the point terms see
+    something), a real 2-sample batch of the 2D base (t in [-3, 3], dynamic filter, disocclusion) and of the
+    fitting recipe: with the heads run on the footprint only, the step computes the same terms and the same
+    parameter gradients as with the heads on the whole grid; the footprint is a part of the grid."""
+    from exported_models import trained_tiny_checkpoint, workdir
+    from occflownet.model import load_checkpoint
+    from occflownet.train import loop
+    from occflownet.train.step import LossComputer
+
+    model, _, _ = load_checkpoint(trained_tiny_checkpoint())
+    model.train()
+    cfg = TrainConfig(preset="tiny", dataroot=str(workdir() / "trained-world"), split="all", out=str(tmp_path),
+                      num_workers=0, max_steps=2, batch_size=2, **options)
+    index, positions, flows = loop._training_data(cfg)
+    batch = next(iter(loop._data_loader(cfg, index, positions, flows, 0, loop.ddp.DistInfo())))
+    weights = loop._class_weights(cfg, index, torch.device("cpu"))
+    results = []
+    for footprint in (False, True):
+        losses = LossComputer(cfg, model.cfg, weights, footprint=footprint)
+        assert losses.heads_on_footprint == footprint
+        step_batch = dict(batch)
+        rows = losses.head_rows(step_batch, torch.device("cpu"))
+        outputs = model(step_batch["images"], step_batch["intrinsics"], step_batch["cam2ego"], **rows)
+        terms = losses(outputs, step_batch, torch.device("cpu"), torch.Generator().manual_seed(1), step=5)
+        model.zero_grad()
+        terms["loss"].backward()
+        results.append((terms, [p.grad.clone() for p in model.parameters() if p.grad is not None]))
+        if footprint:
+            share = len(rows["density_at"]) / (2 * 640_000)
+            assert 0.05 < share < 0.8, share
+            occupied = (outputs["density"] >= model.cfg.threshold).float().mean()
+            assert 0.001 < occupied < 0.5                       # a trained grid: some voxels occupied
+    (dense, dense_grads), (rows_terms, row_grads) = results
+    assert dense.keys() == rows_terms.keys()
+    for name in dense:
+        assert float(rows_terms[name].detach()) == pytest.approx(float(dense[name].detach()), rel=1e-5, abs=1e-7), name
+    assert len(dense_grads) == len(row_grads)
+    for a, b in zip(dense_grads, row_grads):
+        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-6)
+
+
+def test_heads_stay_on_the_whole_grid_for_flow_the_free_prior_and_3d_labels():
+    assert _computer(supervision="2d").heads_on_footprint
+    for overrides in ({"flow": True}, {"free_prior_weight": 0.5}, {"supervision": "2d+3d", "voxel_mask": True}):
+        losses = _computer(**{"supervision": "2d", **overrides})
+        assert not losses.heads_on_footprint and losses.head_rows({}, torch.device("cpu")) == {}

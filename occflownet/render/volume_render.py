@@ -256,9 +256,17 @@ def render_rays(density: torch.Tensor, logits: torch.Tensor, origins: torch.Tens
         return RenderOutput(depth=depth, semantics=semantics, weight_sum=weight_sum, weights=weights, sigma=sigma,
                             t_samples=t_samples, t_starts=t_starts, t_ends=t_ends)
 
-    # Reference path: plain autograd through F.grid_sample lookups (GPU; on CPU the tests' and benchmarks' reference).
     if logits_rows is not None:
         logits = _dense_logits(logits, logits_rows, grid)
+    return _render_grid_sample(density, logits, origins, directions, edges, batch_index, logits_index, far, cfg,
+                               generator)
+
+
+def _render_grid_sample(density, logits, origins, directions, edges, batch_index, logits_index, far, cfg,
+                        generator) -> RenderOutput:
+    """The reference path: plain autograd through F.grid_sample lookups (GPU; on CPU the tests' and benchmarks'
+    reference). Arguments as :func:`render_rays` has checked them; logits [B_l, X, Y, Z, C]."""
+    grid = cfg.grid
     with torch.no_grad():
         mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
         points = origins[:, None, :] + mids[..., None] * directions[:, None, :]
