@@ -476,10 +476,10 @@ def test_density_logit_clip_renders_at_the_edge_and_keeps_the_gradient():
     assert official.render_density(outputs["density"], outputs) is outputs["density"]
 
 
-FOOTPRINT_OPTIONS = {   # the fitting recipe of docs/ablation.md without the free prior (which reads every voxel)
+FOOTPRINT_OPTIONS = {   # the fitting recipe of docs/ablation.md (its free prior reads every σ), and a gradient floor
     "free_beyond_grid": True, "free_before_point": True, "free_stretch": "points", "box_line_of_sight": True,
     "ray_sampling": "sqrt-balanced", "point_semantics_weight": 1.0, "point_density_weight": 1.0,
-    "density_grad_floor": 6.0}
+    "free_prior_weight": 2.0, "density_grad_floor": 6.0}
 
 
 @pytest.mark.parametrize("options", [{}, FOOTPRINT_OPTIONS], ids=["2d-base", "recipe"])
@@ -512,8 +512,9 @@ def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(opt
         terms["loss"].backward()
         results.append((terms, [p.grad.clone() for p in model.parameters() if p.grad is not None]))
         if footprint:
-            share = len(rows["density_at"]) / (2 * 640_000)
+            share = len(rows["logits_at"]) / (2 * 640_000)
             assert 0.05 < share < 0.8, share
+            assert (rows["density_at"] is None) == ("free_prior_weight" in options)   # the prior reads every σ
             occupied = (outputs["density"] >= model.cfg.threshold).float().mean()
             assert 0.001 < occupied < 0.5                       # a trained grid: some voxels occupied
     (dense, dense_grads), (rows_terms, row_grads) = results
@@ -525,8 +526,9 @@ def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(opt
         torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-6)
 
 
-def test_heads_stay_on_the_whole_grid_for_flow_the_free_prior_and_3d_labels():
+def test_heads_stay_on_the_whole_grid_for_flow_and_3d_labels():
     assert _computer(supervision="2d").heads_on_footprint
-    for overrides in ({"flow": True}, {"free_prior_weight": 0.5}, {"supervision": "2d+3d", "voxel_mask": True}):
+    assert _computer(supervision="2d", free_prior_weight=0.5).heads_on_footprint     # σ on the grid, logits not
+    for overrides in ({"flow": True}, {"supervision": "2d+3d", "voxel_mask": True}):
         losses = _computer(**{"supervision": "2d", **overrides})
         assert not losses.heads_on_footprint and losses.head_rows({}, torch.device("cpu")) == {}

@@ -56,18 +56,19 @@ class LossComputer:
 
     @property
     def heads_on_footprint(self) -> bool:
-        """Whether the heads need to run only on the rays' footprint (:meth:`footprint_rows`): the terms read the
-        grid through renderings and the rays' points only — not with 3D labels, not with flow (which moves
-        voxels), not with the free prior (which reads every voxel). Exact: a step computes the same loss and
+        """Whether the semantic head (and σ's, unless the free prior reads every σ) needs to run only on the rays'
+        footprint (:meth:`footprint_rows`): the terms read the logits through renderings and the rays' points only
+        — not with 3D labels, not with flow (which moves voxels). Exact: a step computes the same loss and
         gradients either way (tests/test_train_losses.py)."""
         return (self.footprint and not self.cfg.flow and not self.cfg.uses_3d
-                and bool(self.needs & {*RENDERINGS, *POINT_INPUTS}) and not self.needs & {"density", "logits"})
+                and bool(self.needs & {*RENDERINGS, *POINT_INPUTS}) and "logits" not in self.needs)
 
     def head_rows(self, batch: dict, device) -> dict:
         """Keyword arguments of the model's forward for this batch: ``density_at`` / ``logits_at`` (the rows of
         :func:`~occflownet.train.losses.voxel_targets`) when :attr:`heads_at_rows`; the rows of
-        :meth:`footprint_rows` for both when :attr:`heads_on_footprint` (also stored as the batch's
-        "footprint_rows", from which :meth:`inputs` rebuilds the grids); else none (the whole grid)."""
+        :meth:`footprint_rows` when :attr:`heads_on_footprint`, for σ too unless a term reads every σ (also stored
+        as the batch's "footprint_rows", from which :meth:`inputs` puts σ back on the grids and the renderer reads
+        the logits); else none (the whole grid)."""
         if self.heads_at_rows:
             rows = batch.get("voxel_rows")
             return {"density_at": None if rows is None else rows.to(device),
@@ -75,7 +76,7 @@ class LossComputer:
         if self.heads_on_footprint:
             rows = self.footprint_rows(batch).to(device)
             batch["footprint_rows"] = rows
-            return {"density_at": rows, "logits_at": rows}
+            return {"density_at": None if "density" in self.needs else rows, "logits_at": rows}
         return {}
 
     def footprint_rows(self, batch: dict) -> torch.Tensor:
