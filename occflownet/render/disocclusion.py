@@ -39,7 +39,7 @@ def disocclude(density: torch.Tensor, logits: torch.Tensor,
             raise ValueError(f"logits at rows must be [K, C] for rows [K], got {tuple(logits.shape)} and "
                              f"{tuple(rows.shape)}")
         mask = torch.zeros(density.numel(), dtype=torch.bool, device=density.device)
-        mask = mask.index_put((rows,), dynamic_mask(logits.detach(), classes)).reshape(density.shape)
+        mask = mask.index_copy(0, rows, dynamic_mask(logits.detach(), classes)).reshape(density.shape)
     elif tuple(logits.shape[:-1]) != tuple(density.shape):
         raise ValueError(f"density {tuple(density.shape)} and logits {tuple(logits.shape)} disagree: logits must "
                          "be density's shape plus a class dimension")
