@@ -139,3 +139,33 @@ def test_heads_at_rows_equal_the_full_grid_at_those_rows(tiny):
                                    rtol=1e-6, atol=1e-6)
         only_d = model(images, K, T, density_at=rows_d)      # one head restricted, the other over the grid
         assert only_d["logits"].shape == (2, 200, 200, 16, NUM_CLASSES)
+
+
+@pytest.mark.parametrize("rows", [640_000, 1_000, 37])
+def test_voxel_mlp_trains_with_the_gradients_of_its_modules(rows):
+    """VoxelMLP (the heads) in training runs its Linear layers as RowLinear, whose backward sums the weight gradient
+    over row blocks (and a one-output layer's input gradient as a broadcast product): the same outputs, and the same
+    gradients up to the order of summation, as the plain modules, for row counts that fill the blocks or not; in eval
+    and under autocast it is the modules themselves."""
+    from occflownet.model.decoder import mlp
+
+    torch.manual_seed(0)
+    for out in (1, 17):
+        head = mlp(8, (16,), out)
+        x = torch.randn(rows, 8)
+        results = []
+        for rowwise in (True, False):
+            head.zero_grad()
+            xi = x.clone().requires_grad_(True)
+            head.train()
+            y = head(xi) if rowwise else torch.nn.Sequential.forward(head, xi)
+            assert ("RowLinear" in type(y.grad_fn).__name__) == rowwise
+            (y.square().sum() / rows).backward()
+            results.append([y.detach(), xi.grad] + [p.grad.clone() for p in head.parameters()])
+        for a, b in zip(*results):
+            torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert "RowLinear" not in type(head(x.requires_grad_(True)).grad_fn).__name__
+    head.eval()
+    with torch.no_grad():
+        assert torch.equal(head(x), torch.nn.Sequential.forward(head, x))
