@@ -10,9 +10,9 @@ crosses gives every voxel a sample on the segment can read.
 
 What it is for: a volume that equals the prediction on the footprint and holds anything finite elsewhere renders
 the same depths, semantics and weights, with the same gradients, so the model's heads need to run on the footprint
-only (``occflownet.train.step.LossComputer.head_rows``: 37–47 % of the grid for the 4,096 rays of a 2d-base sample, O = 3). The one
-difference is at a sample lying on a cell face to within rounding (1e-13 m): the kernel may read the voxel beyond
-the face with a weight of that order, which the footprint may leave out.
+only (``occflownet.train.step.LossComputer.head_rows``: 37–47 % of the grid for the 4,096 rays of a 2d-base
+sample, O = 3). The one difference is at a sample lying on a cell face to within rounding (1e-13 m): the kernel may
+read the voxel beyond the face with a weight of that order, which the footprint may leave out.
 """
 from __future__ import annotations
 
