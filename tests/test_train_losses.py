@@ -482,12 +482,12 @@ FOOTPRINT_OPTIONS = {   # the fitting recipe of docs/ablation.md (its free prior
     "free_prior_weight": 2.0, "density_grad_floor": 6.0}
 
 
-@pytest.mark.parametrize("options", [{}, FOOTPRINT_OPTIONS], ids=["2d-base", "recipe"])
+@pytest.mark.parametrize("options", [{}, FOOTPRINT_OPTIONS, {"flow": True}], ids=["2d-base", "recipe", "flow"])
 def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(options, tmp_path):
-    """A trained tiny checkpoint (occupied voxels of several classes, so disocclusion and the point terms see
-    something), a real 2-sample batch of the 2D base (t in [-3, 3], dynamic filter, disocclusion) and of the
-    fitting recipe: with the heads run on the footprint only, the step computes the same terms and the same
-    parameter gradients as with the heads on the whole grid; the footprint is a part of the grid."""
+    """A trained tiny checkpoint (occupied voxels of several classes, so disocclusion, the warp and the point terms
+    see something), a real 2-sample batch of the 2D base (t in [-3, 3], dynamic filter, disocclusion), of the
+    fitting recipe and of occupancy flow: with the heads run on the footprint only, the step computes the same terms
+    and the same parameter gradients as with the heads on the whole grid; the footprint is a part of the grid."""
     from exported_models import trained_tiny_checkpoint, workdir
     from occflownet.model import load_checkpoint
     from occflownet.train import loop
@@ -511,6 +511,8 @@ def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(opt
         model.zero_grad()
         terms["loss"].backward()
         results.append((terms, [p.grad.clone() for p in model.parameters() if p.grad is not None]))
+        if footprint and cfg.flow:       # the warp moves some of the predicted voxels
+            assert sum(len(moves["voxels"]) for moves, _ in step_batch["flow"]) > 0
         if footprint:
             share = len(rows["logits_at"]) / (2 * 640_000)
             assert 0.05 < share < 0.8, share
@@ -526,9 +528,8 @@ def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(opt
         torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-6)
 
 
-def test_heads_stay_on_the_whole_grid_for_flow_and_3d_labels():
-    assert _computer(supervision="2d").heads_on_footprint
+def test_heads_stay_on_the_whole_grid_with_3d_labels():
+    assert _computer(supervision="2d").heads_on_footprint and _computer(supervision="2d", flow=True).heads_on_footprint
     assert _computer(supervision="2d", free_prior_weight=0.5).heads_on_footprint     # σ on the grid, logits not
-    for overrides in ({"flow": True}, {"supervision": "2d+3d", "voxel_mask": True}):
-        losses = _computer(**{"supervision": "2d", **overrides})
-        assert not losses.heads_on_footprint and losses.head_rows({}, torch.device("cpu")) == {}
+    losses = _computer(supervision="2d+3d", voxel_mask=True)
+    assert not losses.heads_on_footprint and losses.head_rows({}, torch.device("cpu")) == {}

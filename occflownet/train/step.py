@@ -58,10 +58,10 @@ class LossComputer:
     def heads_on_footprint(self) -> bool:
         """Whether the semantic head (and σ's, unless the free prior reads every σ) needs to run only on the rays'
         footprint (:meth:`footprint_rows`): the terms read the logits through renderings and the rays' points only
-        — not with 3D labels, not with flow (which moves voxels). Exact: a step computes the same loss and
-        gradients either way (tests/test_train_losses.py)."""
-        return (self.footprint and not self.cfg.flow and not self.cfg.uses_3d
-                and bool(self.needs & {*RENDERINGS, *POINT_INPUTS}) and "logits" not in self.needs)
+        (not with 3D labels). Exact: a step computes the same loss and gradients either way
+        (tests/test_train_losses.py)."""
+        return (self.footprint and not self.cfg.uses_3d and bool(self.needs & {*RENDERINGS, *POINT_INPUTS})
+                and "logits" not in self.needs)
 
     def head_rows(self, batch: dict, device) -> dict:
         """Keyword arguments of the model's forward for this batch: ``density_at`` / ``logits_at`` (the rows of
@@ -83,7 +83,9 @@ class LossComputer:
         """int64 [K], ascending rows of the batch's flattened grids [B·X·Y·Z]: every voxel that this step's terms
         can read — the footprint (:func:`~occflownet.render.footprint.ray_footprint`) of the batch's rays up to
         the rendering's far end (or their free stretch's end, if beyond) and of its free rays, in the grid of the
-        sample each ray's volume belongs to, and the voxels holding the rays' points."""
+        sample each ray's volume belongs to, the voxels holding the rays' points and, with flow, the voxels of the
+        boxes whose predicted voxels move (the warp reads them there; what it writes elsewhere it reads only at the
+        voxel it writes)."""
         grid, far = self.render_cfg.grid, self.render_cfg.far
         samples = int(batch["images"].shape[0])
         source = batch["volume_source"].numpy()
@@ -106,6 +108,8 @@ class LossComputer:
             inside = ((ijk >= 0) & (ijk < np.asarray(grid.shape))).all(axis=1)
             b = source[batch["ray_volume"].numpy()]
             mask[(b[inside], *ijk[inside].T)] = True
+        for b, (moves, _) in enumerate(batch.get("flow", [])):          # one entry per sample, in batch order
+            mask[(b, *np.asarray(moves["voxels"]).reshape(-1, 3).T)] = True
         return torch.from_numpy(np.flatnonzero(mask.reshape(-1)).astype(np.int64))
 
     def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None,
@@ -213,6 +217,8 @@ class LossComputer:
         source = batch["volume_source"].to(device)
         temporal = batch["volume_is_temporal"].to(device)
         if self.cfg.flow:
+            if logits.dim() == 2:          # heads on the footprint: the warp moves voxels of whole grids
+                logits = self._on_grids(logits, batch)
             parts = [PackedMoves.from_arrays(**moves) for moves, _ in batch["flow"]]
             packed = PackedMoves.concat(parts, [offset for _, offset in batch["flow"]]).to(device)
             return FrameVolumes(*warp_volumes(density, logits, source, packed, mover=self.cfg.flow_mover))
