@@ -186,11 +186,16 @@ def _check_logits_rows(logits: torch.Tensor, rows: torch.Tensor, grid: Grid) -> 
     return rows.numel() // grid.num_voxels
 
 
+def table_rows(table: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """table [K, C] (logits given with ``logits_rows``) at ``rows`` (long, any shape; -1: no row) → [..., C], zero
+    where the row is -1; differentiable in ``table``."""
+    padded = torch.cat([table, table.new_zeros(1, table.shape[1])])
+    return padded[torch.where(rows >= 0, rows, table.shape[0]).long()]
+
+
 def _dense_logits(logits: torch.Tensor, rows: torch.Tensor, grid: Grid) -> torch.Tensor:
     """logits [K, C] at ``rows`` [B_l·X·Y·Z] → [B_l, X, Y, Z, C] (zero where the row is -1), differentiable."""
-    padded = torch.cat([logits, logits.new_zeros(1, logits.shape[1])])
-    picked = padded[torch.where(rows >= 0, rows, logits.shape[0]).long()]
-    return picked.reshape(-1, *grid.shape, logits.shape[1])
+    return table_rows(logits, rows).reshape(-1, *grid.shape, logits.shape[1])
 
 
 def _use_numba(lookup: str, device: torch.device) -> bool:

@@ -18,7 +18,7 @@ from occflownet.model.presets import ModelConfig
 from occflownet.render.disocclusion import disocclude
 from occflownet.render.footprint import ray_footprint
 from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
-from occflownet.render.volume_render import RenderConfig, render_rays
+from occflownet.render.volume_render import RenderConfig, render_rays, table_rows
 from occflownet.train.losses import loss_terms
 from occflownet.train.recipe import TrainConfig
 
@@ -102,10 +102,8 @@ class LossComputer:
                 mine = sample == b
                 if mine.any():
                     mask[b] |= ray_footprint(origins[mine], directions[mine], t_end[mine], grid)
-        if self.needs & set(POINT_INPUTS):
-            o, d = batch["ray_origins"].numpy(), batch["ray_directions"].numpy()
-            ijk = grid.index_of(o + batch["ray_depths"].numpy()[:, None] * d)
-            inside = ((ijk >= 0) & (ijk < np.asarray(grid.shape))).all(axis=1)
+        if self.needs & set(POINT_INPUTS):      # the voxels point_values reads, by the same arithmetic
+            inside, ijk = (t.numpy() for t in self.point_voxels(batch, torch.device("cpu")))
             b = source[batch["ray_volume"].numpy()]
             mask[(b[inside], *ijk[inside].T)] = True
         for b, (moves, _) in enumerate(batch.get("flow", [])):          # one entry per sample, in batch order
@@ -239,18 +237,22 @@ class LossComputer:
         lies inside the grid (P of them): "point_logits" [P, 17] and "point_sigma" [P], the logits and σ of the voxel
         holding the point in the ray's frame volume (with flow the moved one), and "point_labels" [P], the rays'
         labels."""
-        grid = self.render_cfg.grid
-        points = batch["ray_origins"].to(device) + batch["ray_depths"].to(device)[:, None] * \
-            batch["ray_directions"].to(device)
-        ijk = grid.index_of(points)
-        shape = torch.tensor(grid.shape, device=device)
-        inside = ((ijk >= 0) & (ijk < shape)).all(dim=1)
+        inside, ijk = self.point_voxels(batch, device)
         volume = batch["ray_volume"].to(device)[inside]
         logits_volume = volume if volumes.logits_index is None else volumes.logits_index[volume]
         i, j, k = ijk[inside].unbind(1)
         return {"point_logits": volumes.logits_at(logits_volume, i, j, k),
                 "point_sigma": volumes.density[volume, i, j, k],
                 "point_labels": batch["ray_labels"].to(device)[inside]}
+
+    def point_voxels(self, batch: dict, device) -> tuple[torch.Tensor, torch.Tensor]:
+        """(inside bool [R], ijk long [R, 3]): the voxel holding each ray's LiDAR point (origin + depth · direction,
+        current ego frame, float32 arithmetic on ``device``) and whether it lies in the grid."""
+        grid = self.render_cfg.grid
+        points = batch["ray_origins"].to(device) + batch["ray_depths"].to(device)[:, None] * \
+            batch["ray_directions"].to(device)
+        ijk = grid.index_of(points)
+        return ((ijk >= 0) & (ijk < torch.tensor(grid.shape, device=device))).all(dim=1), ijk
 
     def _free_opacity(self, volumes: "FrameVolumes", batch: dict, device, generator) -> torch.Tensor:
         """Opacity [F] of the batch's free rays (free-space beams, camera rays beyond the grid) through their
@@ -331,9 +333,7 @@ class FrameVolumes:
         if self.logits_rows is None:
             return self.logits[volume, i, j, k]
         x, y, z = self.density.shape[1:]
-        rows = self.logits_rows[((volume * x + i) * y + j) * z + k]
-        padded = torch.cat([self.logits, self.logits.new_zeros(1, self.logits.shape[1])])
-        return padded[torch.where(rows >= 0, rows, len(self.logits))]
+        return table_rows(self.logits, self.logits_rows[((volume * x + i) * y + j) * z + k])
 
     @property
     def grids(self) -> tuple[torch.Tensor, torch.Tensor]:
