@@ -18,7 +18,7 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
 - with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations; 7-bit
   weights, and with ``int8-full`` 8-bit weights for CPUs with VNNI/AMX) and fp16 graphs, with their agreement with
   fp32 (the first row); ``--openvino`` adds today's fp32 and int8 graphs run by OpenVINO CPU (f32 precision hint),
-  ``--openvino-bf16`` today's fp32 graph with OpenVINO's bf16 hint (on CPUs with AVX512-BF16 or AMX).
+  ``--openvino-bf16`` today's fp32 and int8 graphs with OpenVINO's bf16 hint (on CPUs with AVX512-BF16 or AMX).
 
 ``--profile`` prints onnxruntime's own profile of each graph (kernel time per op class, share of the run, and the
 costliest nodes; for OpenVINO's rows its own per-layer counters, by layer type and kernel), so a loss shows where it
@@ -309,7 +309,8 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
         graphs += [(f"{label} [OpenVINO]", path, inputs) for label, path, inputs in graphs
                    if label in ("today", "today int8", "today int8-full")]
         if args.openvino_bf16:
-            graphs += [("today [OpenVINO bf16]", graphs[0][1], graphs[0][2])]
+            graphs += [(f"{label} [OpenVINO bf16]", path, inputs) for label, path, inputs in graphs
+                       if label in ("today", "today int8", "today int8-full")]
     sessions = [(label, OnnxPredictor(_openvino(label, path, threads) if "[OpenVINO" in label
                                       else create_session(path, threads, spinning=SPINNING)), inputs)
                 for label, path, inputs in graphs]
@@ -362,7 +363,8 @@ def main(argv=None) -> int:
     p.add_argument("--torch", action="store_true", help="also time torch eager")
     p.add_argument("--openvino", action="store_true", help="also run today's fp32 (and int8) graph on OpenVINO CPU")
     p.add_argument("--openvino-bf16", action="store_true",
-                   help="with --openvino: also today's fp32 graph with OpenVINO's bf16 precision hint")
+                   help="with --openvino: also today's fp32 and int8 graphs with OpenVINO's bf16 precision hint (the "
+                        "layers an int8 graph keeps in float then run in bf16)")
     p.add_argument("--keep", help="write the graphs into this folder and keep them (a baseline for later runs)")
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     p.add_argument("--ort-spinning", action="store_true", help="let onnxruntime's idle threads busy-wait")
