@@ -4,17 +4,20 @@ add free-space beams, beyond the paper).
 Usage (the data first, once):
     occflownet synth --out W/train --scenes 8 --frames 40 --seed 0 && occflownet prepare --dataroot W/train
     occflownet synth --out W/val --scenes 2 --frames 40 --seed 1000 && occflownet prepare --dataroot W/val
-    python benchmarks/ablation.py --train W/train --val W/val --out W/runs --steps 200 [--rows 1,2,...]
+    python benchmarks/ablation.py --train W/train --val W/val --out W/runs --steps 200 [--rows 1,2,...] \
+        [--seed S] [--extra "OPTIONS"]
 
 Every row trains `tiny` with the same seed and step budget on split `all` of the train root, evaluates the EMA
 checkpoint on split `all` of the val root (mIoU with the camera mask, RayIoU, static/dynamic mIoU) and appends a
 JSON line to ``<out>/results.jsonl``; the table is printed at the end (markdown, for docs/ablation.md).
-Rows already in results.jsonl are skipped, so the study can be resumed.
+Rows already in results.jsonl are skipped, so the study can be resumed (one ``--out`` per seed and per ``--extra``:
+the records are keyed by row). ``--extra`` adds the same ``occflownet train`` options to every row.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import shutil
 import subprocess
 import sys
@@ -92,6 +95,8 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--rows", default=",".join(map(str, ROWS)))
     ap.add_argument("--num-workers", type=int, default=1)
+    ap.add_argument("--extra", default="", help="extra `occflownet train` options for every row (one string, e.g. "
+                                                "the recommended 2D recipe of docs/training.md)")
     ap.add_argument("--phase", choices=["train", "eval", "all"], default="all",
                     help="train only (e.g. several row groups in parallel), eval only, or both per row")
     args = ap.parse_args()
@@ -99,18 +104,19 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     results_path = out / "results.jsonl"
     done = {row for row, _, _ in done_rows(results_path)}
+    extra = tuple(shlex.split(args.extra))
     for row in [int(r) for r in args.rows.split(",")]:
         if row in done:
             continue
         run = out / f"row{row}"
         if args.phase in ("train", "all"):
-            seconds = train_row(args.train, run, row, args.steps, args.seed, args.rays, args.num_workers)
+            seconds = train_row(args.train, run, row, args.steps, args.seed, args.rays, args.num_workers, extra)
             (run / "train_seconds.txt").write_text(f"{seconds:.1f}")
         if args.phase == "train":
             continue
         t_train = float((run / "train_seconds.txt").read_text())
-        append(results_path, {"row": row, "name": ROWS[row][0], "options": ROWS[row][1], "steps": args.steps,
-                              "rays": args.rays, "seed": args.seed, "train_seconds": round(t_train, 1),
+        append(results_path, {"row": row, "name": ROWS[row][0], "options": ROWS[row][1] + list(extra),
+                              "steps": args.steps, "rays": args.rays, "seed": args.seed, "train_seconds": round(t_train, 1),
                               **evaluate_row(args.val, run)})
     if results_path.exists():
         print(table(results_path))
