@@ -116,7 +116,8 @@ def main() -> int:
             continue
         t_train = float((run / "train_seconds.txt").read_text())
         append(results_path, {"row": row, "name": ROWS[row][0], "options": ROWS[row][1] + list(extra),
-                              "steps": args.steps, "rays": args.rays, "seed": args.seed, "train_seconds": round(t_train, 1),
+                              "steps": args.steps, "rays": args.rays, "seed": args.seed,
+                              "train_seconds": round(t_train, 1),
                               **evaluate_row(args.val, run)})
     if results_path.exists():
         print(table(results_path))
