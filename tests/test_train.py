@@ -172,6 +172,27 @@ def test_free_space_beams_and_unmasked_voxel_losses_train(prepared_synth_root, t
     assert config["head_init"] == "official"
 
 
+def test_data_workers_with_the_free_stretch_walk_finish_and_load_what_the_main_process_loads(prepared_synth_root,
+                                                                                               tmp_path):
+    # Forked workers hung for ever here (the free stretches' parallel voxel walk with two numba threads, then a
+    # torch op in collate): the loader now starts its workers. Same batches with and without workers.
+    root, _ = prepared_synth_root
+    recipe = ["--max-steps", "2", "--horizon", "0", "--no-flow", "--free-beyond-grid", "--free-before-point",
+              "--free-stretch", "points", "--free-rays-per-step", "256"]
+    env = dict(os.environ, OMP_NUM_THREADS="2", NUMBA_NUM_THREADS="2")
+    workers = tmp_path / "workers"
+    argv = _train_argv(root, workers, *recipe)
+    argv[argv.index("--num-workers") + 1] = "2"
+    res = subprocess.run([sys.executable, "-m", "occflownet", *argv], capture_output=True, text=True, timeout=150,
+                         env=env)
+    assert res.returncode == 0, res.stderr[-3000:]
+    inline = tmp_path / "inline"
+    assert main(_train_argv(root, inline, *recipe)) == 0
+    first = [json.loads((run / "log.jsonl").read_text().splitlines()[0]) for run in (workers, inline)]
+    assert first[0]["step"] == first[1]["step"] == 1
+    assert first[0]["loss"] == pytest.approx(first[1]["loss"], rel=1e-3)        # the same batch, the same init
+
+
 def test_precision_autocasts_to_bf16_on_cuda_and_on_cpus_only_when_asked_and_native(monkeypatch):
     from occflownet.train.loop import autocast_dtype
     cpu, cuda = torch.device("cpu"), torch.device("cuda")

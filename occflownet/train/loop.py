@@ -193,8 +193,13 @@ def _data_loader(cfg: TrainConfig, index, positions, flow_records, start_step: i
     dataset = TrainingSamples(cfg.dataroot, index, positions, cfg, flow_records)
     sampler = StepBatchSampler(len(positions), cfg.batch_size, cfg.seed, start_step, cfg.max_steps,
                                info.rank, info.world_size)
+    # Workers are started, not forked: a fork of this process inherits an OpenMP runtime (torch's, numba's threading
+    # layer) that already ran parallel regions, and with more than one thread its first parallel region in the
+    # worker can wait forever (seen with --free-stretch points at NUMBA_NUM_THREADS=2: every worker idle in
+    # collate's torch.stack). A started worker imports its own runtime, at a cost of seconds once per run.
     return DataLoader(dataset, batch_sampler=sampler, collate_fn=collate, num_workers=cfg.num_workers,
-                      prefetch_factor=2 if cfg.num_workers > 0 else None)
+                      prefetch_factor=2 if cfg.num_workers > 0 else None,
+                      multiprocessing_context="spawn" if cfg.num_workers > 0 else None)
 
 
 def _write_train_config(cfg: TrainConfig, info) -> None:
