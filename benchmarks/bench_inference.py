@@ -306,11 +306,9 @@ def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -
     print(f"{name}: exported in {time.perf_counter() - t:.0f} s; {len(graphs)} graphs, {args.runs} interleaved runs",
           flush=True)
     if args.openvino:
-        graphs += [(f"{label} [OpenVINO]", path, inputs) for label, path, inputs in graphs
+        hints = ("OpenVINO", "OpenVINO bf16") if args.openvino_bf16 else ("OpenVINO",)
+        graphs += [(f"{label} [{hint}]", path, inputs) for hint in hints for label, path, inputs in graphs
                    if label in ("today", "today int8", "today int8-full")]
-        if args.openvino_bf16:
-            graphs += [(f"{label} [OpenVINO bf16]", path, inputs) for label, path, inputs in graphs
-                       if label in ("today", "today int8", "today int8-full")]
     sessions = [(label, OnnxPredictor(_openvino(label, path, threads) if "[OpenVINO" in label
                                       else create_session(path, threads, spinning=SPINNING)), inputs)
                 for label, path, inputs in graphs]
