@@ -25,8 +25,18 @@ def stage_costs(out: Path) -> dict:
     first, last = log[0], log[-1]                     # steps/s between the first and the last log record
     per_step = (last["time"] - first["time"]) / max(1, last["step"] - first["step"])
     return {"synth_per_keyframe": seconds["synth"] / keyframes, "prepare_per_keyframe": seconds["prepare"] / keyframes,
-            "train_setup": max(0.0, seconds["train"] - per_step * last["step"]), "train_per_step": per_step,
+            "train_setup": max(0.0, seconds["train"] - per_step * last["step"]),
+            ("train_per_rendering_step" if "2d" in cfg["supervision"] else "train_per_step"): per_step,
             "eval_per_keyframe": seconds["eval"] / cfg["frames"], "export": seconds["export"], "steps": last["step"]}
+
+
+def val_scores(out: Path) -> dict:
+    """The figures the README quotes, in %, from a finished quickstart's eval.json (inside mask_camera)."""
+    result = json.loads((out / "eval.json").read_text())
+    occupancy = result["occupancy"]["camera_mask"]
+    scores = {"miou": occupancy["miou"], "geometry_iou": occupancy["geometry_iou"],
+              "car": occupancy["iou_per_class"]["car"], "rayiou": result["rayiou"]["rayiou"]}
+    return {k: round(100 * v, 2) for k, v in scores.items()}
 
 
 def main(argv=None) -> int:
@@ -40,7 +50,7 @@ def main(argv=None) -> int:
     from occflownet.quickstart import matmul_gflops
 
     costs = {"matmul_gflops": matmul_gflops(seconds=2.0), **stage_costs(out)}
-    print(json.dumps({k: round(v, 3) for k, v in costs.items()}, indent=1))
+    print(json.dumps({k: round(v, 3) for k, v in costs.items()} | {"scores": val_scores(out)}, indent=1))
     return 0
 
 

@@ -24,7 +24,7 @@ from occflownet.contract import calibration_json
 from occflownet.data.index import load_index
 from occflownet.files import atomic_path
 from occflownet.options import config_argv, option
-from occflownet.train.recipe import TrainConfig
+from occflownet.train.recipe import RENDERING_RECIPE, TrainConfig
 
 
 @dataclass(frozen=True)
@@ -41,11 +41,14 @@ class QuickstartConfig:
                                  "(docs/training.md)", choices=PRESET_NAMES)
     seed: int = option(0, "seed of the world and of the training run")
     train_minutes: float = option(7.0, "training time budget in minutes")
-    max_steps: int = option(3000, "step cap (6 min on the 2-core reference CPU; a slower one stops at the time "
-                                     "budget)")
-    supervision: str = option("3d", "3d: within minutes on a CPU, 3D labels inside the camera mask give the model "
-                                    "closest to the street of the recipes measured; 2d needs a far longer budget "
-                                    "(docs/ablation.md, docs/training.md)", choices=SUPERVISION_MODES)
+    max_steps: int = option(3000, "step cap (with --supervision 3d 6 min on the 2-core reference CPU; a step that "
+                                     "renders rays costs about 3x as much, so the time budget stops it first)")
+    supervision: str = option("2d+3d", "2d+3d: 3D labels inside the camera mask and rendered LiDAR rays of the "
+                                       "current frame with the recommended rendering options, the recipe that "
+                                       "found the cars in the quickstart's minutes; 3d: the labels alone (better "
+                                       "geometry, about a third of the car IoU); 2d: the rays alone "
+                                       "(docs/training.md)",
+                              choices=SUPERVISION_MODES)
     voxel_mask: bool = option(True, "3D voxel losses only inside mask_camera (train --voxel-mask; the quickest "
                                     "recipe measured, docs/training.md)")
 
@@ -60,8 +63,10 @@ class StageCosts:
     matmul_gflops: float = 237.0           # torch float32 matmul 1024³, 2 threads (:func:`matmul_gflops`)
     synth_per_keyframe: float = 0.83       # seconds: render, LiDAR, sweeps, labels of one keyframe
     prepare_per_keyframe: float = 0.01
-    train_setup: float = 1.0               # seconds before the first step (numba compilation, first batches)
+    train_setup: float = 9.6               # seconds before the first step (class counts, spawned data workers,
+                                           # numba compilation, first batches)
     train_per_step: float = 0.122          # tiny, 3D labels in mask_camera, float32 (the CPU default)
+    train_per_rendering_step: float = 0.45  # tiny, 2d+3d with the rays of QUICK_RENDERING, float32 (2026-12-05)
     eval_per_keyframe: float = 0.15
     export: float = 11.9                   # export with its parity checks, the picture and the viewer file
 
@@ -87,7 +92,8 @@ def estimate_minutes(cfg: QuickstartConfig, gflops: float, costs: StageCosts = S
     scale = costs.matmul_gflops / max(gflops, 1e-3)
     keyframes = cfg.scenes * cfg.frames
     val = cfg.frames                                          # the last scene is the val split
-    train = min(cfg.train_minutes * 60, costs.train_setup + cfg.max_steps * costs.train_per_step * scale)
+    per_step = costs.train_per_rendering_step if "2d" in supervision_parts(cfg.supervision) else costs.train_per_step
+    train = min(cfg.train_minutes * 60, costs.train_setup + cfg.max_steps * per_step * scale)
     seconds = {"synth": keyframes * costs.synth_per_keyframe * scale,
                "prepare": keyframes * costs.prepare_per_keyframe * scale, "train": train,
                "eval": val * costs.eval_per_keyframe * scale, "export": costs.export * scale}
@@ -182,13 +188,20 @@ def _prepare(cfg: QuickstartConfig, paths: QuickstartPaths, announce):
     return prepare(paths.world, progress=True)
 
 
+# How the quickstart renders rays in its minutes: the current frame only (O = 0; the temporal rows of the paper's
+# ladder fall behind at short budgets, docs/ablation.md ninth round), so no dynamic filter, disocclusion or flow,
+# and uniform loss weights (the ladder's row 3), with the recommended rendering options (RENDERING_RECIPE).
+QUICK_RENDERING: dict[str, object] = {"horizon": 0, "flow": False, "dynamic_filter": False, "disocclusion": False,
+                                      "loss_weighting": False, **RENDERING_RECIPE}
+
+
 def train_config(cfg: QuickstartConfig, world: Path, run: Path, version: str) -> TrainConfig:
-    """The run the quickstart trains: ``cfg.preset`` on ``world``'s train split into ``run``, with occupancy flow when
-    rays are rendered (2D supervision), for ``cfg``'s time and step budget."""
+    """The run the quickstart trains: ``cfg.preset`` on ``world``'s train split into ``run``, rendering rays as
+    :data:`QUICK_RENDERING` says when the supervision renders (2d, 2d+3d), for ``cfg``'s time and step budget."""
+    rendering = QUICK_RENDERING if "2d" in supervision_parts(cfg.supervision) else {}
     return TrainConfig(preset=cfg.preset, dataroot=str(world), out=str(run), version=version, split="train",
-                       supervision=cfg.supervision, flow="2d" in supervision_parts(cfg.supervision),
-                       time_limit_s=cfg.train_minutes * 60,
-                       max_steps=cfg.max_steps, seed=cfg.seed, voxel_mask=cfg.voxel_mask)
+                       supervision=cfg.supervision, time_limit_s=cfg.train_minutes * 60,
+                       max_steps=cfg.max_steps, seed=cfg.seed, voxel_mask=cfg.voxel_mask, **rendering)
 
 
 def train_argv(train_cfg: TrainConfig) -> list[str]:

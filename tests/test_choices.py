@@ -17,7 +17,7 @@ from occflownet.choices import (FLOW_MOVERS, FREE_STRETCH_RULES, HEAD_INITS, INT
 from occflownet.cli import build_parser
 from occflownet.commands.train import config_from_args
 from occflownet.options import config_argv
-from occflownet.quickstart import QuickstartConfig, train_argv, train_config
+from occflownet.quickstart import QUICK_RENDERING, QuickstartConfig, train_argv, train_config
 from occflownet.train.recipe import PRESET_RECIPES, TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -125,15 +125,18 @@ def test_every_train_config_field_is_reachable_from_the_command_line():
     assert "--time-limit" in argv and "--precision" in argv and "--grad-clip" in argv
 
 
-@pytest.mark.parametrize("cfg", [QuickstartConfig(), QuickstartConfig(supervision="2d", voxel_mask=False,
-                                                                        train_minutes=0.05, max_steps=2, seed=4)])
+@pytest.mark.parametrize("cfg", [QuickstartConfig(), QuickstartConfig(supervision="3d"),
+                                 QuickstartConfig(supervision="2d", voxel_mask=False, train_minutes=0.05,
+                                                  max_steps=2, seed=4)])
 def test_the_quickstarts_train_command_parses_to_the_config_it_runs(cfg, tmp_path):
     train_cfg = train_config(cfg, tmp_path / "world", tmp_path / "run", "v1.0-trainval")
     argv = train_argv(train_cfg)
     assert argv[0] == "train" and argv[-1] == "--resume"
     parsed = build_parser().parse_args(shlex.split(shlex.join(argv)))
     assert parsed.resume and config_from_args(parsed) == train_cfg
-    assert train_cfg.flow == (cfg.supervision != "3d") and train_cfg.time_limit_s == cfg.train_minutes * 60
+    assert train_cfg.time_limit_s == cfg.train_minutes * 60
+    rendering = {name: getattr(train_cfg, name) for name in QUICK_RENDERING}
+    assert (rendering == QUICK_RENDERING) == train_cfg.uses_2d           # the rendering recipe when rays render
 
 
 def test_every_quickstart_field_is_reachable_from_the_command_line():
@@ -141,7 +144,7 @@ def test_every_quickstart_field_is_reachable_from_the_command_line():
     from occflownet.options import config_kwargs
 
     changed = QuickstartConfig(out="elsewhere", scenes=5, frames=4, seed=2, train_minutes=0.5, max_steps=9,
-                               supervision="2d+3d", voxel_mask=False)
+                               supervision="2d", voxel_mask=False)
     argv = ["quickstart", *config_argv(changed, QuickstartConfig())]
     assert Used(**config_kwargs(build_parser().parse_args(argv), Used)) == changed
     assert len(argv) == 1 + 2 * 7 + 1                                     # every field changed, every one given

@@ -57,3 +57,21 @@ def test_free_stretches_before_the_points_need_rendering_supervision():
         TrainConfig(supervision="3d", free_before_point=True)
     # they are stretches of the rendered rays, not free rays the data pipeline builds
     assert not TrainConfig(supervision="2d", free_before_point=True).uses_free_rays
+
+
+def test_the_rendering_recipe_is_the_one_the_training_guide_recommends():
+    import re
+    import shlex
+    from pathlib import Path
+
+    from occflownet.train.recipe import RENDERING_RECIPE
+
+    guide = (Path(__file__).parents[1] / "docs" / "training.md").read_text()
+    spelled = re.search(r"The recommended 2D recipe[^`]*`(--supervision 2d[^`]*)`", guide)
+    assert spelled, "docs/training.md no longer spells the recommended 2D recipe"
+    args = build_parser().parse_args(["train", "--dataroot", "W", "--out", "R", "--version", "v", *shlex.split(spelled.group(1))])
+    cfg = config_from_args(args)
+    assert {name: getattr(cfg, name) for name in RENDERING_RECIPE} == RENDERING_RECIPE
+    default = TrainConfig()                                    # every entry changes something
+    assert all(getattr(default, name) != value for name, value in RENDERING_RECIPE.items())
+    assert TrainConfig(supervision="2d+3d", **RENDERING_RECIPE).uses_2d   # valid with either rendering mode
