@@ -120,9 +120,10 @@ def test_resume_after_sigkill_reaches_the_same_weights(prepared_synth_root, tmp_
 
     raw_a, ema_a = _weights(straight / "checkpoints" / "last.pt")
     raw_b, ema_b = _weights(ckpt)
-    for name in raw_a:
-        torch.testing.assert_close(raw_a[name], raw_b[name], rtol=0, atol=1e-6, msg=name)
-        torch.testing.assert_close(ema_a[name], ema_b[name], rtol=0, atol=1e-6, msg=name)
+    for name in raw_a:      # the message keeps torch's (how far apart) and says where the run was killed
+        said = lambda m, name=name: f"{name} (killed at step {step_at_kill}): {m}"
+        torch.testing.assert_close(raw_a[name], raw_b[name], rtol=0, atol=1e-6, msg=said)
+        torch.testing.assert_close(ema_a[name], ema_b[name], rtol=0, atol=1e-6, msg=said)
 
 
 def test_ddp_two_gloo_processes_hold_identical_weights(prepared_synth_root, tmp_path):
