@@ -3,7 +3,7 @@ included), the backward pass, the optimizer and the EMA, for one preset and supe
 
     export OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2
     python benchmarks/profile_step.py --dataroot W [--preset tiny] [--configs 3d,base,flow] [--steps 6]
-        [--num-workers 0] [--rays 4096] [--ops 12]
+        [--num-workers 0] [--rays 4096] [--ops 12] [--by-shape]
 
 W is a prepared root (`occflownet prepare`; 3d needs its Occ3D labels). Each configuration runs in its own process:
 the training loop's own data loader, TrainingState and LossComputer, ``occflownet.train.loop.train_step`` for
@@ -74,7 +74,7 @@ class TimedCall:
 
 
 def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, rays: int | None, ops: int,
-        precision: str = "auto") -> dict:
+        precision: str = "auto", by_shape: bool = False) -> dict:
     import torch
     from torch.profiler import ProfilerActivity, profile
 
@@ -112,14 +112,15 @@ def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, ray
         clock.end("step")
 
     step(0)
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=by_shape) as prof:
         for n in range(1, steps + 1):
             step(n)
     s = {k: v / steps for k, v in clock.seconds.items()}
     timed = sum(s[k] for k in ("forward", "losses (rendering included)", "optimizer", "EMA"))
     s["backward and the rest"] = s["step"] - timed
     s["forward: preprocessing and the rest"] = s["forward"] - sum(s[f"forward: {p}"] for p in PARTS)
-    table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=ops, max_name_column_width=40)
+    table = prof.key_averages(group_by_input_shape=by_shape).table(sort_by="self_cpu_time_total", row_limit=ops,
+                                                                   max_name_column_width=40)
     return {"config": name, "preset": preset, "seconds": s, "amp": str(amp), "ops": table,
             "threads": torch.get_num_threads(), "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
@@ -150,18 +151,19 @@ def main() -> int:
     ap.add_argument("--ops", type=int, default=12, help="rows of the operator table")
     ap.add_argument("--precision", default="auto", choices=PRECISIONS,
                     help="train --precision (auto: float32 on CPUs; bf16: autocast where the CPU computes it natively)")
+    ap.add_argument("--by-shape", action="store_true", help="one operator row per input shape (record_shapes)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(one(args.dataroot, args.preset, args.child, args.steps, args.num_workers, args.rays,
-                             args.ops, precision=args.precision)))
+                             args.ops, precision=args.precision, by_shape=args.by_shape)))
         return 0
     for name in args.configs.split(","):
         cmd = [sys.executable, __file__, "--dataroot", args.dataroot, "--preset", args.preset, "--steps",
                str(args.steps), "--num-workers", str(args.num_workers), "--ops", str(args.ops), "--child", name]
         if args.rays:
             cmd += ["--rays", str(args.rays)]
-        cmd += ["--precision", args.precision]
+        cmd += ["--precision", args.precision] + (["--by-shape"] if args.by_shape else [])
         res = subprocess.run(cmd, capture_output=True, text=True)
         if res.returncode != 0:
             print(f"## {args.preset} {name}: failed\n{res.stderr[-2000:]}")
