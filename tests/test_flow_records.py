@@ -174,3 +174,25 @@ def test_record_drives_the_warp_to_the_box_at_t():
     occupied = {tuple(v) for v in torch.nonzero(out_d[1] > 0.5).tolist()}
     body_t = voxels_in_box([10.2, -1.8, 1.2], [2.0, 4.0, 1.6], 0.0, margin_scale=1.0, margin_add=0.0)
     assert occupied == {tuple(v) for v in body_t.tolist()}
+
+
+def test_precompute_flow_in_started_workers_writes_what_the_serial_loop_writes(prepared_synth_root, tmp_path,
+                                                                               monkeypatch):
+    import shutil
+
+    from occflownet.data import flow
+    from occflownet.data.index import load_index
+
+    root, version = prepared_synth_root
+    index = load_index(root, version)
+    copies = {}
+    for name, parallel_from in (("serial", 10 ** 9), ("workers", 0)):
+        monkeypatch.setattr(flow, "PARALLEL_FROM", parallel_from)
+        copy = tmp_path / name
+        shutil.copytree(root / "occflownet", copy / "occflownet")    # flow_path lies beside the index
+        copies[name] = np.load(flow.precompute_flow(index, copy, horizon=2, workers=2))
+    serial, workers = copies["serial"], copies["workers"]
+    assert sorted(serial.files) == sorted(workers.files) and len(serial["sample_token"]) == len(index)
+    assert len(serial["offset"]) > 0                                 # moving boxes: the records are not empty
+    for key in serial.files:
+        np.testing.assert_array_equal(serial[key], workers[key], err_msg=key)

@@ -288,11 +288,18 @@ def flow_path(dataroot, version: str) -> Path:
     return index_dir(dataroot, version) / "flow.npz"
 
 
+# Keyframes from which precompute_flow runs a process pool: below, starting the workers costs more than it saves.
+PARALLEL_FROM = 2000
+
+
 def precompute_flow(index, dataroot, horizon: int = 3, progress: bool = False, workers: int | None = None) -> Path:
     """Flow records of every keyframe of ``index`` (``keyframe_flow``), written once to ``flow_path``.
 
-    Parallel over keyframes (a process pool once there are enough of them to pay for it); deterministic, so
-    re-running writes the same file. ``flow.json`` beside it records the horizon it was computed for."""
+    Parallel over keyframes (a process pool once there are :data:`PARALLEL_FROM` of them); deterministic, so
+    re-running writes the same file, serial or parallel. The workers are started, not forked (a fork inherits the
+    OpenMP runtime of a process that may have run parallel kernels, the hang the training loader met), and receive
+    the index once each, not with every job. ``flow.json`` beside it records the horizon it was computed for."""
+    import multiprocessing
     import os
     from concurrent.futures import ProcessPoolExecutor
 
@@ -301,11 +308,12 @@ def precompute_flow(index, dataroot, horizon: int = 3, progress: bool = False, w
     positions = list(range(len(index)))
     workers = workers if workers is not None else min(4, os.cpu_count() or 1)
     bar = dict(total=len(positions), desc="flow", unit="keyframe", disable=not progress)
-    if workers > 1 and len(positions) >= 2000:
+    if workers > 1 and len(positions) >= PARALLEL_FROM:
         chunk = max(1, len(positions) // (workers * 8))
-        with ProcessPoolExecutor(workers) as pool:
-            records = list(tqdm(pool.map(_keyframe_flow_job, [(index, p, horizon) for p in positions],
-                                         chunksize=chunk), **bar))
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_set_worker_index, initargs=(index,)) as pool:
+            records = list(tqdm(pool.map(_keyframe_flow_job, [(p, horizon) for p in positions], chunksize=chunk),
+                                **bar))
     else:
         records = [keyframe_flow(index, p, horizon) for p in tqdm(positions, **bar)]
     path = flow_path(dataroot, index.version)
@@ -316,12 +324,14 @@ def precompute_flow(index, dataroot, horizon: int = 3, progress: bool = False, w
     return path
 
 
-def flow_horizon(dataroot, version: str) -> int | None:
-    """The horizon the written flow records cover (None when ``prepare`` wrote none)."""
-    meta = flow_path(dataroot, version).with_suffix(".json")
-    return int(json.loads(meta.read_text())["horizon"]) if meta.is_file() else None
+_WORKER_INDEX = None          # the SampleIndex of a precompute_flow worker process (set by its initializer)
+
+
+def _set_worker_index(index) -> None:
+    global _WORKER_INDEX
+    _WORKER_INDEX = index
 
 
 def _keyframe_flow_job(job) -> FlowRecord:
-    index, position, horizon = job
-    return keyframe_flow(index, position, horizon)
+    position, horizon = job
+    return keyframe_flow(_WORKER_INDEX, position, horizon)
