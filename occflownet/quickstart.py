@@ -36,9 +36,9 @@ class QuickstartConfig:
     scenes: int = option(6, "synthetic scenes (the last one is the val split); more, shorter scenes generalise "
                                  "better than few long ones at the same cost (docs/training.md)")
     frames: int = option(8, "keyframes per scene")
-    preset: str = option("tiny", "model preset; small (tiny with a denser lifting) generalises better at equal "
-                                 "steps but takes 2.1x as long a step, so it needs a longer --train-minutes "
-                                 "(docs/training.md)", choices=PRESET_NAMES)
+    preset: str = option("tiny", "model preset; small (tiny with a denser lifting) generalised better at equal "
+                                 "steps with 3D labels but takes 2.1x as long a step, so it needs a longer "
+                                 "--train-minutes (docs/training.md)", choices=PRESET_NAMES)
     seed: int = option(0, "seed of the world and of the training run")
     train_minutes: float = option(7.0, "training time budget in minutes")
     max_steps: int = option(3000, "step cap (with --supervision 3d 6 min on the 2-core reference CPU; a step that "

@@ -324,6 +324,12 @@ def precompute_flow(index, dataroot, horizon: int = 3, progress: bool = False, w
     return path
 
 
+def flow_horizon(dataroot, version: str) -> int | None:
+    """The horizon the written flow records cover (None when ``prepare`` wrote none)."""
+    meta = flow_path(dataroot, version).with_suffix(".json")
+    return int(json.loads(meta.read_text())["horizon"]) if meta.is_file() else None
+
+
 _WORKER_INDEX = None          # the SampleIndex of a precompute_flow worker process (set by its initializer)
 
 
