@@ -41,8 +41,8 @@ class QuickstartConfig:
                                  "--train-minutes (docs/training.md)", choices=PRESET_NAMES)
     seed: int = option(0, "seed of the world and of the training run")
     train_minutes: float = option(7.0, "training time budget in minutes")
-    max_steps: int = option(3000, "step cap (with --supervision 3d 6 min on the 2-core reference CPU; a step that "
-                                     "renders rays costs about 3x as much, so the time budget stops it first)")
+    max_steps: int = option(3000, "step cap (with --supervision 3d 6-7 min on the 2-core reference CPU; a step "
+                                     "that renders rays costs about 3x as much, so the time budget stops it first)")
     supervision: str = option("2d+3d", "2d+3d: 3D labels inside the camera mask and rendered LiDAR rays of the "
                                        "current frame with the recommended rendering options, the recipe that "
                                        "found the cars in the quickstart's minutes; 3d: the labels alone (better "
@@ -60,15 +60,16 @@ class StageCosts:
     development machine (AMD EPYC, AVX-512 with bf16) by ``python benchmarks/bench_quickstart.py``, which runs the
     quickstart and divides each stage's seconds by its units (docs/training.md)."""
 
-    matmul_gflops: float = 237.0           # torch float32 matmul 1024³, 2 threads (:func:`matmul_gflops`)
-    synth_per_keyframe: float = 0.83       # seconds: render, LiDAR, sweeps, labels of one keyframe
-    prepare_per_keyframe: float = 0.01
-    train_setup: float = 9.6               # seconds before the first step (class counts, spawned data workers,
+    # One set, measured on one day (2026-12-05): three quickstarts (seeds 0, 1, 2) and a 3d-mask run, means.
+    matmul_gflops: float = 340.0           # torch float32 matmul 1024³, 2 threads (:func:`matmul_gflops`)
+    synth_per_keyframe: float = 1.19       # seconds: render, LiDAR, sweeps, labels of one keyframe
+    prepare_per_keyframe: float = 0.014
+    train_setup: float = 9.2               # seconds before the first step (class counts, spawned data workers,
                                            # numba compilation, first batches)
-    train_per_step: float = 0.122          # tiny, 3D labels in mask_camera, float32 (the CPU default)
-    train_per_rendering_step: float = 0.45  # tiny, 2d+3d with the rays of QUICK_RENDERING, float32 (2026-12-05)
-    eval_per_keyframe: float = 0.15
-    export: float = 11.9                   # export with its parity checks, the picture and the viewer file
+    train_per_step: float = 0.147          # tiny, 3D labels in mask_camera (--supervision 3d), float32
+    train_per_rendering_step: float = 0.48  # tiny, 2d+3d with the rays of QUICK_RENDERING (the default), float32
+    eval_per_keyframe: float = 0.19
+    export: float = 15.2                   # export with its parity checks, the picture and the viewer file
 
 
 def matmul_gflops(size: int = 1024, seconds: float = 0.3) -> float:
