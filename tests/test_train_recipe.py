@@ -69,7 +69,8 @@ def test_the_rendering_recipe_is_the_one_the_training_guide_recommends():
     guide = (Path(__file__).parents[1] / "docs" / "training.md").read_text()
     spelled = re.search(r"The recommended 2D recipe[^`]*`(--supervision 2d[^`]*)`", guide)
     assert spelled, "docs/training.md no longer spells the recommended 2D recipe"
-    args = build_parser().parse_args(["train", "--dataroot", "W", "--out", "R", "--version", "v", *shlex.split(spelled.group(1))])
+    args = build_parser().parse_args(["train", "--dataroot", "W", "--out", "R", "--version", "v",
+                                      *shlex.split(spelled.group(1))])
     cfg = config_from_args(args)
     assert {name: getattr(cfg, name) for name in RENDERING_RECIPE} == RENDERING_RECIPE
     default = TrainConfig()                                    # every entry changes something

@@ -22,12 +22,13 @@ PRESET_RECIPES: dict[str, dict] = {
 }
 HEAD_INIT_CHOICES = ("", *HEAD_INITS)  # "" = the preset's
 
-# Rendering supervision as this project recommends it (beyond the paper; each part measured in docs/ablation.md and
-# docs/training.md § "What a step does"): the stretch of each ray in front of its LiDAR point (up to where it first nears
-# a point) and the rays beyond the grid rendered as free, ramped in over 400 steps; rays through annotated boxes
-# dropped; rays drawn ∝ 1/√(their class's count); the point terms (the voxel of each return is occupied and carries
-# its class) with a free prior of 2; no rendered-depth MSE. {TrainConfig field: value}: the quickstart applies it
-# when it renders rays; on the command line it is the options docs/training.md spells (a test holds the two equal).
+# Rendering supervision as this project recommends it (beyond the paper; each part measured in docs/ablation.md
+# and docs/training.md § "What a step does"): the stretch of each ray in front of its LiDAR point (up to where it
+# first nears a point) and the rays beyond the grid rendered as free, ramped in over 400 steps; rays through
+# annotated boxes dropped; rays drawn ∝ 1/√(their class's count); the point terms (the voxel of each return is
+# occupied and carries its class) with a free prior of 2; no rendered-depth MSE. {TrainConfig field: value}: the
+# quickstart applies it when it renders rays; on the command line it is the options docs/training.md spells (a test
+# holds the two equal).
 RENDERING_RECIPE: dict[str, object] = {
     "free_beyond_grid": True, "free_before_point": True, "free_stretch": "points", "box_line_of_sight": True,
     "free_ramp_steps": 400, "ray_sampling": "sqrt-balanced", "point_semantics_weight": 1.0,
