@@ -185,9 +185,13 @@ class VoxelDecoder(nn.Module):
         # the per-voxel layers run on 2-D [rows, channels] tensors: onnxruntime then fuses bias and ReLU (Gemm)
         if self.up is not None:
             x = self.up(x).reshape(-1, self.head_channels)                         # [M·s³, Ch]
+            # Training sums and rectifies in place (the upsampling's backward does not need its output): no copy
+            # of all M·s³ rows per op. Eval and export keep the out-of-place ops the exported graph was checked with.
             if fine_points is not None:  # summed in float32 (under bf16 autocast the upsampling gives bf16)
-                x = torch.index_add(x.float(), 0, fine_points[0], fine_points[1].float())
-            x = torch.relu(x)
+                rows, values = fine_points[0], fine_points[1].float()
+                x = (x.float().index_add_(0, rows, values) if self.training
+                     else torch.index_add(x.float(), 0, rows, values))
+            x = x.relu_() if self.training else torch.relu(x)
         return x
 
     def forward(self, trunk: torch.Tensor, fine_points: tuple[torch.Tensor, torch.Tensor] | None,
