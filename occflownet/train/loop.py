@@ -3,7 +3,8 @@ logging, the stop conditions (NaN guard, max steps, optional time limit), DDP un
 
 The state the loop carries (model, EMA, optimiser, schedule, step) is a :class:`~occflownet.train.state.TrainingState`;
 ``<out>/checkpoints/last.pt`` is its ``save`` (the layout is in ``occflownet/train/state.py``) and ``--resume`` its
-``load``. Data order and ray sampling are pure functions of (seed, step), so a resumed run is exact.
+``load``. Data order and ray sampling are pure functions of (seed, step), so a resumed run continues the same
+run, up to float rounding (docs/training.md, "Checkpoints, resume, failures").
 """
 from __future__ import annotations
 
