@@ -23,6 +23,7 @@ import numpy as np
 
 from ..occ3d import DYNAMIC_CLASSES, GRID, Grid, category_to_occ3d
 from ..files import atomic_path
+from ..worker_processes import spawn_context
 from ..geometry import invert, make_transform, matrix_to_quaternion
 from .box_voxels import MARGIN_ADD, MARGIN_SCALE, voxels_in_box
 
@@ -299,7 +300,6 @@ def precompute_flow(index, dataroot, horizon: int = 3, progress: bool = False, w
     re-running writes the same file, serial or parallel. The workers are started, not forked (a fork inherits the
     OpenMP runtime of a process that may have run parallel kernels, the hang the training loader met), and receive
     the index once each, not with every job. ``flow.json`` beside it records the horizon it was computed for."""
-    import multiprocessing
     import os
     from concurrent.futures import ProcessPoolExecutor
 
@@ -310,7 +310,7 @@ def precompute_flow(index, dataroot, horizon: int = 3, progress: bool = False, w
     bar = dict(total=len(positions), desc="flow", unit="keyframe", disable=not progress)
     if workers > 1 and len(positions) >= PARALLEL_FROM:
         chunk = max(1, len(positions) // (workers * 8))
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+        with ProcessPoolExecutor(workers, mp_context=spawn_context(),
                                  initializer=_set_worker_index, initargs=(index,)) as pool:
             records = list(tqdm(pool.map(_keyframe_flow_job, [(p, horizon) for p in positions], chunksize=chunk),
                                 **bar))

@@ -15,7 +15,6 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +29,7 @@ from occflownet.labels.accumulate import load_scene_cloud
 from occflownet.labels.config import LabelConfig
 from occflownet.labels.keyframe import label_keyframe, window_sweeps
 from occflownet.labels.npz import write_labels_npz
+from occflownet.worker_processes import spawn_context
 
 SETTINGS_FILE = "labels.json"
 
@@ -144,7 +144,7 @@ def _run(jobs, index, sweeps, dataroot, gts, config, workers):
             yield label_scene(dataroot, index, sweeps[name], name, positions, gts, config)
         return
     threads = max(1, (os.cpu_count() or 1) // workers)
-    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"), initializer=_init_worker,
+    with ProcessPoolExecutor(max_workers=workers, mp_context=spawn_context(), initializer=_init_worker,
                              initargs=(threads,)) as pool:
         futures = [pool.submit(label_scene, dataroot, index, sweeps[name], name, positions, gts, config)
                    for name, positions in jobs]

@@ -33,6 +33,7 @@ from occflownet.train.run_log import RunLogger
 from occflownet.train.sampler import StepBatchSampler
 from occflownet.train.state import TrainingError, TrainingState
 from occflownet.train.step import LossComputer
+from occflownet.worker_processes import spawn_context
 
 
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path:
@@ -200,7 +201,7 @@ def _data_loader(cfg: TrainConfig, index, positions, flow_records, start_step: i
     # collate's torch.stack). A started worker imports its own runtime, at a cost of seconds once per run.
     return DataLoader(dataset, batch_sampler=sampler, collate_fn=collate, num_workers=cfg.num_workers,
                       prefetch_factor=2 if cfg.num_workers > 0 else None,
-                      multiprocessing_context="spawn" if cfg.num_workers > 0 else None)
+                      multiprocessing_context=spawn_context() if cfg.num_workers > 0 else None)
 
 
 def _write_train_config(cfg: TrainConfig, info) -> None:
