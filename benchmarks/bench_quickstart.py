@@ -15,6 +15,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from occflownet.quickstart import QuickstartConfig
+
 
 def stage_costs(out: Path) -> dict:
     """{field of StageCosts: value} from a finished quickstart folder (timings.json, run/log.jsonl)."""
@@ -26,7 +28,7 @@ def stage_costs(out: Path) -> dict:
     per_step = (last["time"] - first["time"]) / max(1, last["step"] - first["step"])
     return {"synth_per_keyframe": seconds["synth"] / keyframes, "prepare_per_keyframe": seconds["prepare"] / keyframes,
             "train_setup": max(0.0, seconds["train"] - per_step * last["step"]),
-            ("train_per_rendering_step" if "2d" in cfg["supervision"] else "train_per_step"): per_step,
+            ("train_per_rendering_step" if QuickstartConfig(**cfg).renders_rays else "train_per_step"): per_step,
             "eval_per_keyframe": seconds["eval"] / cfg["frames"], "export": seconds["export"], "steps": last["step"]}
 
 

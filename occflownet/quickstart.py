@@ -52,6 +52,12 @@ class QuickstartConfig:
     voxel_mask: bool = option(True, "3D voxel losses only inside mask_camera (train --voxel-mask; the quickest "
                                     "recipe measured, docs/training.md)")
 
+    @property
+    def renders_rays(self) -> bool:
+        """Whether the run renders LiDAR rays (2d, 2d+3d): it then trains with :data:`QUICK_RENDERING` and its steps
+        cost ``StageCosts.train_per_rendering_step``."""
+        return "2d" in supervision_parts(self.supervision)
+
 
 @dataclass(frozen=True)
 class StageCosts:
@@ -93,7 +99,7 @@ def estimate_minutes(cfg: QuickstartConfig, gflops: float, costs: StageCosts = S
     scale = costs.matmul_gflops / max(gflops, 1e-3)
     keyframes = cfg.scenes * cfg.frames
     val = cfg.frames                                          # the last scene is the val split
-    per_step = costs.train_per_rendering_step if "2d" in supervision_parts(cfg.supervision) else costs.train_per_step
+    per_step = costs.train_per_rendering_step if cfg.renders_rays else costs.train_per_step
     train = min(cfg.train_minutes * 60, costs.train_setup + cfg.max_steps * per_step * scale)
     seconds = {"synth": keyframes * costs.synth_per_keyframe * scale,
                "prepare": keyframes * costs.prepare_per_keyframe * scale, "train": train,
@@ -199,7 +205,7 @@ QUICK_RENDERING: dict[str, object] = {"horizon": 0, "flow": False, "dynamic_filt
 def train_config(cfg: QuickstartConfig, world: Path, run: Path, version: str) -> TrainConfig:
     """The run the quickstart trains: ``cfg.preset`` on ``world``'s train split into ``run``, rendering rays as
     :data:`QUICK_RENDERING` says when the supervision renders (2d, 2d+3d), for ``cfg``'s time and step budget."""
-    rendering = QUICK_RENDERING if "2d" in supervision_parts(cfg.supervision) else {}
+    rendering = QUICK_RENDERING if cfg.renders_rays else {}
     return TrainConfig(preset=cfg.preset, dataroot=str(world), out=str(run), version=version, split="train",
                        supervision=cfg.supervision, time_limit_s=cfg.train_minutes * 60,
                        max_steps=cfg.max_steps, seed=cfg.seed, voxel_mask=cfg.voxel_mask, **rendering)
