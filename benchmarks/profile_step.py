@@ -78,6 +78,7 @@ def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, ray
     import torch
     from torch.profiler import ProfilerActivity, profile
 
+    from occflownet.heap import reuse_freed_memory
     from occflownet.train import loop
     from occflownet.train.recipe import TrainConfig
     from occflownet.train.state import TrainingState
@@ -87,6 +88,7 @@ def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, ray
                       num_workers=num_workers, max_steps=steps + 1, precision=precision,
                       **CONFIGS[name])
     device = torch.device("cpu")
+    reuse_freed_memory()                                         # as train() does
     index, positions, flows = loop._training_data(cfg)
     state = TrainingState.create(cfg, loop._model_config(cfg, index, positions), device)
     losses = LossComputer(cfg, state.model_cfg, loop._class_weights(cfg, index, device))

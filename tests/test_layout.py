@@ -32,7 +32,7 @@ MAX_LINES = 60
 STAGES = (
     ("core", ("occflownet", "occflownet.occ3d", "occflownet.geometry", "occflownet.rig", "occflownet.contract",
               "occflownet.pictures", "occflownet.voxel_walk", "occflownet.voxel_walk_numba", "occflownet.files",
-              "occflownet.choices", "occflownet.options", "occflownet.worker_processes",
+              "occflownet.choices", "occflownet.options", "occflownet.worker_processes", "occflownet.heap",
               "occflownet.viewer"), ()),
     # the training wing
     ("data", ("occflownet.data",), ("core",)),

@@ -38,6 +38,7 @@ from occflownet.data.loaders import load_occupancy, load_sample_images
 from occflownet.data.tables import DatasetError
 from occflownet.eval import OccupancyMetric, RayIoUMetric, scene_ray_origins
 from occflownet.eval.fog import FogMetric, crossed_voxels
+from occflownet.heap import reuse_freed_memory
 from occflownet.runtime import ModelInputs, Predictor, frame_inputs
 
 
@@ -256,9 +257,11 @@ def evaluate(samples: EvalSamples, predict: Predictor, *, batch_size: int = 1, s
     (``scene_ray_origins`` with the index's LiDAR sensor2ego and ego2global at the LiDAR timestamps).
     ``save_predictions``: a folder that receives ``<sample token>.npz`` with ``occupancy`` uint8 [200, 200, 16]
     and ``density`` float32 [200, 200, 16]. Loading the next batch and writing predictions run on background
-    threads while the model and the metrics work."""
+    threads while the model and the metrics work. Like ``train()``, it keeps freed memory in the process for reuse
+    (:func:`occflownet.heap.reuse_freed_memory`: the torch model's large tensors stay mapped between samples)."""
     from tqdm import tqdm
 
+    reuse_freed_memory()
     metrics = _Metrics(samples, rayiou, fog_horizon)
     timing = {"load": 0.0, "predict": 0.0, "metric": 0.0}
     t_start = time.perf_counter()

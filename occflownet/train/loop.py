@@ -24,6 +24,7 @@ from occflownet.choices import PRECISIONS
 from occflownet.contract import calibration_json
 from occflownet.data.class_weights import count_voxels, voxel_class_weights
 from occflownet.data.index import load_index
+from occflownet.heap import reuse_freed_memory
 from occflownet.model import get_preset
 from occflownet.model.presets import ModelConfig
 from occflownet.train import distributed as ddp
@@ -38,7 +39,10 @@ from occflownet.worker_processes import spawn_context
 
 def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path:
     """Run training, or with ``resume`` continue it from ``<out>/checkpoints/last.pt`` (from scratch when there is
-    none yet); returns the path of the last checkpoint. Under torchrun every rank calls it; rank 0 logs and saves."""
+    none yet); returns the path of the last checkpoint. Under torchrun every rank calls it; rank 0 logs and saves.
+    It keeps freed memory in the process for reuse (:func:`occflownet.heap.reuse_freed_memory`), for the rest of
+    the process's life."""
+    reuse_freed_memory()                                     # a step's large tensors stay mapped between steps
     device, info = _init_device(cfg)
     ckpt_path = last_checkpoint(cfg.out)
     index, positions, flow_records = _training_data(cfg)
