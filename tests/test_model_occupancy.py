@@ -171,9 +171,10 @@ def test_voxel_mlp_trains_with_the_gradients_of_its_modules(rows):
         assert torch.equal(head(x), torch.nn.Sequential.forward(head, x))
 
 
-def test_decoder_features_in_place_while_training_equal_the_out_of_place_ops():
-    """voxel_features sums the fine points into the upsampled rows and rectifies them in place while training (no
-    copy of every row); the values and every gradient are those of the out-of-place ops that eval runs."""
+def test_decoder_features_while_training_equal_the_out_of_place_ops():
+    """voxel_features sums the fine points into the upsampled rows and rectifies them in one buffer while training
+    (FineRows: no copy of every row, forward or backward); the values and every gradient are bitwise those of the
+    out-of-place ops that eval runs."""
     from occflownet.model.decoder import VoxelDecoder
 
     torch.manual_seed(0)
@@ -183,11 +184,11 @@ def test_decoder_features_in_place_while_training_equal_the_out_of_place_ops():
     rows = torch.tensor([0, 3, 3, 199, 57])               # repeated rows add up
     values = torch.randn(5, 4)
 
-    def run(in_place: bool):
+    def run(fused: bool):
         decoder.zero_grad()
         decoder.train()
         src = values.clone().requires_grad_(True)
-        if in_place:
+        if fused:
             x = decoder.voxel_features(trunk, (rows, src))
         else:                                             # the ops eval runs, on the training-mode trunk
             up = decoder.up(decoder.trunk_rows(trunk)).reshape(-1, decoder.head_channels)
@@ -195,7 +196,7 @@ def test_decoder_features_in_place_while_training_equal_the_out_of_place_ops():
         (x * torch.linspace(-1, 1, x.numel()).reshape(x.shape)).sum().backward()
         return [x.detach(), src.grad] + [p.grad.clone() for p in decoder.parameters() if p.grad is not None]
 
-    in_place, out_of_place = run(True), run(False)
-    assert len(in_place) == len(out_of_place) > 3
-    for a, b in zip(in_place, out_of_place):
+    fused, out_of_place = run(True), run(False)
+    assert len(fused) == len(out_of_place) > 3
+    for a, b in zip(fused, out_of_place):
         torch.testing.assert_close(a, b, rtol=0, atol=0)

@@ -89,6 +89,30 @@ class RowLinear(torch.autograd.Function):
         return grad_x, grad_w, grad.sum(0)
 
 
+class FineRows(torch.autograd.Function):
+    """``apply(x [M, in], weight [s³·C, in], bias [s³·C], rows int64 [K], values [K, C], C)`` =
+    ``relu(index_add(linear(x, weight, bias).reshape(M·s³, C), 0, rows, values))``: the head input of every voxel
+    while training, in one buffer. Autograd's in-place ops on the reshaped view made its backward copy the
+    whole buffer twice (``CopySlices``: a clone of [M·s³, C] and a copy of [M, s³·C]); here the backward is
+    the ops autograd runs for the out-of-place form (ReLU's mask on the output, ``index_select`` for the values,
+    ``mm`` and ``sum`` for the layer), so values and gradients are bitwise those of the out-of-place ops (tested)."""
+
+    @staticmethod
+    def forward(ctx, x, weight, bias, rows, values, channels):
+        y = torch.addmm(bias, x, weight.t()).view(-1, channels)                    # [M·s³, C]
+        y.index_add_(0, rows, values).relu_()
+        ctx.save_for_backward(x, weight, y, rows)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, weight, y, rows = ctx.saved_tensors
+        grad = torch.ops.aten.threshold_backward(grad, y, 0)                        # [M·s³, C]
+        grad_values = grad.index_select(0, rows) if ctx.needs_input_grad[4] else None
+        grad_up = grad.view(x.shape[0], -1)                                          # [M, s³·C]
+        return grad_up.mm(weight), grad_up.t().mm(x), grad_up.sum(0), None, grad_values, None
+
+
 class VoxelMLP(nn.Sequential):
     """Per-voxel MLP over the last dimension of [N, C] rows: Linear-ReLU per hidden layer, then a Linear output
     layer (an ``nn.Sequential``: the same parameters and state-dict keys). In training, without autocast, the
@@ -183,16 +207,17 @@ class VoxelDecoder(nn.Module):
         """Head input features [B·Xc·Yc·Zc·s³, head_channels], rows in block layout order."""
         x = self.trunk_rows(trunk)                                                 # [M, Ct], M = B·Xc·Yc·Zc
         # the per-voxel layers run on 2-D [rows, channels] tensors: onnxruntime then fuses bias and ReLU (Gemm)
-        if self.up is not None:
-            x = self.up(x).reshape(-1, self.head_channels)                         # [M·s³, Ch]
-            # Training sums and rectifies in place (the upsampling's backward does not need its output): no copy
-            # of all M·s³ rows per op. Eval and export keep the out-of-place ops the exported graph was checked with.
-            if fine_points is not None:  # summed in float32 (under bf16 autocast the upsampling gives bf16)
-                rows, values = fine_points[0], fine_points[1].float()
-                x = (x.float().index_add_(0, rows, values) if self.training
-                     else torch.index_add(x.float(), 0, rows, values))
-            x = x.relu_() if self.training else torch.relu(x)
-        return x
+        if self.up is None:
+            return x
+        if self.training and fine_points is not None and not torch.is_autocast_enabled(x.device.type):
+            # one buffer for all M·s³ rows, no copies (FineRows); eval and export keep the out-of-place ops below,
+            # which the exported graph was checked with
+            return FineRows.apply(x, self.up.weight, self.up.bias, fine_points[0], fine_points[1].float(),
+                                  self.head_channels)
+        x = self.up(x).reshape(-1, self.head_channels)                             # [M·s³, Ch]
+        if fine_points is not None:      # summed in float32 (under bf16 autocast the upsampling gives bf16)
+            x = torch.index_add(x.float(), 0, fine_points[0], fine_points[1].float())
+        return torch.relu(x)
 
     def forward(self, trunk: torch.Tensor, fine_points: tuple[torch.Tensor, torch.Tensor] | None,
                 density_rows: torch.Tensor | None = None, logit_rows: torch.Tensor | None = None):
