@@ -32,12 +32,13 @@ def check_main_guarded() -> None:
     """Raise :class:`UnguardedMainError` when this call comes from the main script's module level, outside a
     top-level ``if __name__ == "__main__":`` block (a started worker would run that line again).
 
-    Calls from the command line, from an interactive session, from ``python -c`` and from inside a guarded block
-    (directly or through functions it calls) pass; so does everything when the main script's source is unreadable.
+    Calls from the command line (``occflownet``, ``python -m occflownet``: a package's ``__main__`` is not run
+    again), from an interactive session, from ``python -c`` and from inside a guarded block (directly or through
+    functions it calls) pass; so does everything when the main script's source is unreadable.
     """
     main = sys.modules.get("__main__")
     path = getattr(main, "__file__", None)
-    if path is None or not Path(path).is_file():
+    if path is None or not Path(path).is_file() or not _spawn_runs_main_again(main, path):
         return
     line = _main_module_line(main)
     if line is None:
@@ -52,6 +53,16 @@ def check_main_guarded() -> None:
             f"worker imports the script again and would run this line too, so the run would hang. Put the call "
             f'under `if __name__ == "__main__":` (https://docs.python.org/3/library/multiprocessing.html'
             f"#the-spawn-and-forkserver-start-methods), or ask for no worker processes (train: --num-workers 0).")
+
+
+def _spawn_runs_main_again(main, path: str) -> bool:
+    """Whether a started worker runs the main module's code again, as CPython's ``multiprocessing.spawn`` decides:
+    not for a package's ``__main__`` (``python -m occflownet``, a directory, a zip) nor for ``ipython``; yes for a
+    script run by path and for any other module run with ``-m``."""
+    name = getattr(getattr(main, "__spec__", None), "name", None)
+    if name is not None:
+        return not (name == "__main__" or name.endswith(".__main__"))
+    return Path(path).stem != "ipython"
 
 
 def _main_module_line(main) -> int | None:

@@ -47,6 +47,22 @@ def test_a_guard_further_up_does_not_cover_a_later_unguarded_call(tmp_path):
     assert res.returncode != 0 and "UnguardedMainError" in res.stderr, res.stderr[-2000:]
 
 
+def test_a_packages_main_run_with_dash_m_is_not_run_again_and_starts_its_workers(tmp_path):
+    # spawn does not import a package's __main__ again (python -m occflownet is one): no guard needed there; a
+    # plain module run with -m is imported again, so it needs one
+    package = tmp_path / "userpkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "__main__.py").write_text(textwrap.dedent(POOL) + "run_pool()\n")
+    (package / "job.py").write_text(textwrap.dedent(POOL) + "run_pool()\n")
+    ran = subprocess.run([sys.executable, "-m", "userpkg"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr[-2000:]
+    assert "squares [1, 2, 3]" in ran.stdout
+    refused = subprocess.run([sys.executable, "-m", "userpkg.job"], capture_output=True, text=True, timeout=120,
+                             cwd=tmp_path)
+    assert refused.returncode != 0 and "UnguardedMainError" in refused.stderr, refused.stderr[-2000:]
+
+
 def test_python_c_starts_its_workers(tmp_path):
     code = textwrap.dedent(POOL) + "run_pool()\n"
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
