@@ -66,16 +66,17 @@ class StageCosts:
     development machine (AMD EPYC, AVX-512 with bf16) by ``python benchmarks/bench_quickstart.py``, which runs the
     quickstart and divides each stage's seconds by its units (docs/training.md)."""
 
-    # One set, measured on one day (2026-12-05): three quickstarts (seeds 0, 1, 2) and a 3d-mask run, means.
-    matmul_gflops: float = 340.0           # torch float32 matmul 1024³, 2 threads (:func:`matmul_gflops`)
-    synth_per_keyframe: float = 1.19       # seconds: render, LiDAR, sweeps, labels of one keyframe
-    prepare_per_keyframe: float = 0.014
-    train_setup: float = 9.2               # seconds before the first step (class counts, spawned data workers,
+    # One set, measured on one day (2026-12-05, after the heap setting and FineRows): three quickstarts (seeds 0, 1,
+    # 2) and a --supervision 3d run (seed 0), means.
+    matmul_gflops: float = 363.0           # torch float32 matmul 1024³, 2 threads (:func:`matmul_gflops`)
+    synth_per_keyframe: float = 1.16       # seconds: render, LiDAR, sweeps, labels of one keyframe
+    prepare_per_keyframe: float = 0.013
+    train_setup: float = 5.0               # seconds before the first step (class counts, spawned data workers,
                                            # numba compilation, first batches)
-    train_per_step: float = 0.147          # tiny, 3D labels in mask_camera (--supervision 3d), float32
-    train_per_rendering_step: float = 0.48  # tiny, 2d+3d with the rays of QUICK_RENDERING (the default), float32
+    train_per_step: float = 0.129          # tiny, 3D labels in mask_camera (--supervision 3d), float32
+    train_per_rendering_step: float = 0.357  # tiny, 2d+3d with the rays of QUICK_RENDERING (the default), float32
     eval_per_keyframe: float = 0.19
-    export: float = 15.2                   # export with its parity checks, the picture and the viewer file
+    export: float = 14.1                   # export with its parity checks, the picture and the viewer file
 
 
 def matmul_gflops(size: int = 1024, seconds: float = 0.3) -> float:
