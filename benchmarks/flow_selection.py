@@ -7,7 +7,8 @@ object render through them: the smear of the temporal rows without the filter (r
 keyframe of a split and every move of its flow record (t ∈ [-O, O] \\ {0}):
 
 - recall: of the labelled voxels of the box's class inside the enlarged box at t = 0 (the object), the share that
-  flow selects (predicted class = box class) — the rest stays behind;
+  flow selects (``selected_sources``, the warp's own rule: predicted class = box class, a voxel in several boxes
+  moving with one) — the rest stays behind;
 - dense recall: the same, counting only the labelled voxels the model also predicts occupied (σ ≥ τ);
 - precision: of the selected voxels, the share labelled with the box's class (the rest: free space or other
   classes inside the enlarged box, carried along with the object);
@@ -35,7 +36,8 @@ from occflownet.data.loaders import load_occupancy, load_sample_images
 from occflownet.data.rays import RayBuilder, RayConfig
 from occflownet.eval.evaluate import select_samples
 from occflownet.model.checkpoint import model_from_source
-from occflownet.occ3d import CLASS_NAMES, DYNAMIC_FILTER_CLASSES
+from occflownet.occ3d import CLASS_NAMES, DYNAMIC_FILTER_CLASSES, NUM_CLASSES
+from occflownet.render.occupancy_flow import PackedMoves, selected_sources
 from occflownet.runtime import frame_inputs
 
 
@@ -71,20 +73,24 @@ def keyframe_selection(model, samples, position: int, horizon: int) -> dict:
     with torch.inference_mode():
         out = model(torch.from_numpy(inputs.images), torch.from_numpy(inputs.intrinsics),
                     torch.from_numpy(inputs.cam2ego))
-    predicted = out["logits"][0].argmax(-1).numpy()                      # [X, Y, Z] class ids 0..16
     sigma = out["density"][0].numpy()                                    # [X, Y, Z]
     dense = sigma >= model.cfg.threshold
     labels = load_occupancy(samples.dataroot, record.occupancy_path).semantics
     flow = keyframe_flow(samples.index, position, horizon)
     offsets = sorted({int(t) for t in flow.offset})
-    moves = flow_moves(flow, offsets)
+    moves = PackedMoves.from_arrays(**flow_moves(flow, offsets))
+    # the warp's own selection (one volume per offset, all read from this keyframe's prediction)
+    rows = selected_sources(out["logits"].reshape(1, -1, NUM_CLASSES), torch.zeros(len(offsets), dtype=torch.long),
+                            moves)
+    selected = np.zeros(len(moves.voxels), dtype=bool)
+    selected[rows.numpy()] = True
+    voxels, box = moves.voxels.numpy(), moves.box.numpy()
     counts = dict(object=0, object_dense=0, selected=0, selected_object=0, selected_object_dense=0,
-                  object_mass=0.0, selected_mass=0.0, moves=len(moves["classes"]))
-    for k, cls in enumerate(moves["classes"]):
-        v = moves["voxels"][moves["box"] == k]
-        x, y, z = v.T
+                  object_mass=0.0, selected_mass=0.0, moves=moves.num_moves)
+    for k, cls in enumerate(moves.classes.tolist()):
+        x, y, z = voxels[box == k].T
         is_object = labels[x, y, z] == cls
-        chosen = predicted[x, y, z] == cls
+        chosen = selected[box == k]
         counts["object"] += int(is_object.sum())
         counts["object_dense"] += int((is_object & dense[x, y, z]).sum())
         counts["selected"] += int(chosen.sum())

@@ -126,7 +126,7 @@ def idw_neighbours(points: torch.Tensor, grid: Grid = GRID) -> tuple[torch.Tenso
     return idx, weights / weights.sum(-1, keepdim=True)
 
 
-def _selected_sources(logits: torch.Tensor, source: torch.Tensor, moves: PackedMoves, grid: Grid):
+def selected_sources(logits: torch.Tensor, source: torch.Tensor, moves: PackedMoves, grid: Grid = GRID):
     """Rows of ``moves.voxels`` that move (logits [B, V, C], detached): the predicted class (argmax, evaluated at
     the listed voxels only) equals the box class; a voxel selected by several boxes of one volume keeps one."""
     X, Y, Z = grid.shape
@@ -176,7 +176,7 @@ def warp_volumes(density: torch.Tensor, logits: torch.Tensor, source: torch.Tens
     if moves.voxels.shape[0] == 0:
         return out_d.reshape(N, X, Y, Z), out_l.reshape(N, X, Y, Z, C)
     with torch.no_grad():
-        rows = _selected_sources(flat_l.detach(), source, moves, grid)
+        rows = selected_sources(flat_l.detach(), source, moves, grid)
     if rows.numel() == 0:
         return out_d.reshape(N, X, Y, Z), out_l.reshape(N, X, Y, Z, C)
     with torch.no_grad():
@@ -234,7 +234,7 @@ class _WarpPlan(NamedTuple):
 
 
 def _warp_plan(rows: torch.Tensor, source: torch.Tensor, moves: PackedMoves, mover, grid: Grid) -> _WarpPlan:
-    """Targets and weights of the selected source voxels ``rows`` (``_selected_sources``) under ``mover``."""
+    """Targets and weights of the selected source voxels ``rows`` (``selected_sources``) under ``mover``."""
     X, Y, Z = grid.shape
     V = X * Y * Z
     device = source.device
