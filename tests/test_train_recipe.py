@@ -73,6 +73,7 @@ def test_the_rendering_recipe_is_the_one_the_training_guide_recommends():
                                       *shlex.split(spelled.group(1))])
     cfg = config_from_args(args)
     assert {name: getattr(cfg, name) for name in RENDERING_RECIPE} == RENDERING_RECIPE
+    assert cfg.flow and cfg.horizon > 0        # the recipe's flow mover has flow to move
     default = TrainConfig()                                    # every entry changes something
     assert all(getattr(default, name) != value for name, value in RENDERING_RECIPE.items())
     assert TrainConfig(supervision="2d+3d", **RENDERING_RECIPE).uses_2d   # valid with either rendering mode

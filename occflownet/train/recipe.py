@@ -26,13 +26,14 @@ HEAD_INIT_CHOICES = ("", *HEAD_INITS)  # "" = the preset's
 # and docs/training.md § "What a step does"): the stretch of each ray in front of its LiDAR point (up to where it
 # first nears a point) and the rays beyond the grid rendered as free, ramped in over 400 steps; rays through
 # annotated boxes dropped; rays drawn ∝ 1/√(their class's count); the point terms (the voxel of each return is
-# occupied and carries its class) with a free prior of 2; no rendered-depth MSE. {TrainConfig field: value}: the
-# quickstart applies it when it renders rays; on the command line it is the options docs/training.md spells (a test
-# holds the two equal).
+# occupied and carries its class) with a free prior of 2; no rendered-depth MSE; with --flow, moved voxels written
+# to the nearest voxel (the official code's mover, not the paper's splat: docs/ablation.md, eleventh round; it
+# changes nothing without --flow). {TrainConfig field: value}: the quickstart applies it when it renders rays; on
+# the command line it is the options docs/training.md spells (a test holds the two equal).
 RENDERING_RECIPE: dict[str, object] = {
     "free_beyond_grid": True, "free_before_point": True, "free_stretch": "points", "box_line_of_sight": True,
     "free_ramp_steps": 400, "ray_sampling": "sqrt-balanced", "point_semantics_weight": 1.0,
-    "point_density_weight": 1.0, "free_prior_weight": 2.0, "render_depth_weight": 0.0,
+    "point_density_weight": 1.0, "free_prior_weight": 2.0, "render_depth_weight": 0.0, "flow_mover": "nearest",
 }
 
 
