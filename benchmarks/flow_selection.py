@@ -88,16 +88,17 @@ def keyframe_selection(model, samples, position: int, horizon: int) -> dict:
     counts = dict(object=0, object_dense=0, selected=0, selected_object=0, selected_object_dense=0,
                   object_mass=0.0, selected_mass=0.0, moves=moves.num_moves)
     for k, cls in enumerate(moves.classes.tolist()):
-        x, y, z = voxels[box == k].T
-        is_object = labels[x, y, z] == cls
-        chosen = selected[box == k]
+        mine = box == k
+        x, y, z = voxels[mine].T
+        is_object, chosen = labels[x, y, z] == cls, selected[mine]
+        occupied, mass = dense[x, y, z], sigma[x, y, z]
         counts["object"] += int(is_object.sum())
-        counts["object_dense"] += int((is_object & dense[x, y, z]).sum())
+        counts["object_dense"] += int((is_object & occupied).sum())
         counts["selected"] += int(chosen.sum())
         counts["selected_object"] += int((chosen & is_object).sum())
-        counts["selected_object_dense"] += int((chosen & is_object & dense[x, y, z]).sum())
-        counts["object_mass"] += float(sigma[x, y, z][is_object].sum())
-        counts["selected_mass"] += float(sigma[x, y, z][chosen].sum())
+        counts["selected_object_dense"] += int((chosen & is_object & occupied).sum())
+        counts["object_mass"] += float(mass[is_object].sum())
+        counts["selected_mass"] += float(mass[chosen].sum())
     return counts
 
 
