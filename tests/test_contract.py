@@ -145,7 +145,7 @@ def test_calibration_json_is_what_calibration_arrays_reads_back():
     (lambda c: c["cameras"]["CAM_FRONT"]["intrinsic"][0].__setitem__(0, -5.0), "CAM_FRONT intrinsic focal"),
     (lambda c: c["cameras"]["CAM_BACK"]["cam2ego"].__setitem__(3, [0, 0, 1, 1]), "CAM_BACK cam2ego last row"),
     (lambda c: c["cameras"]["CAM_BACK"]["cam2ego"][0].__setitem__(0, 1.1), "CAM_BACK cam2ego rotation"),
-    (lambda c: c["cameras"]["CAM_BACK_LEFT"]["cam2ego"][0].__setitem__(1, float("nan")), "CAM_BACK_LEFT cam2ego .*NaN"),
+    (lambda c: c["cameras"]["CAM_BACK_LEFT"]["cam2ego"][0].__setitem__(1, float("nan")), r"CAM_BACK_LEFT cam2ego\[0\]\[1\] must be finite in float32, got nan"),
     (lambda c: c.__setitem__("image_size", [480]), "calibration image_size must be"),
     (lambda c: c["cameras"]["CAM_BACK"].__setitem__("image_size", [0, 5]), "CAM_BACK image_size must be"),
 ])
@@ -153,6 +153,52 @@ def test_bad_calibrations_name_camera_and_field(mutate, message):
     calib = default_rig(480, 270)
     mutate(calib)
     with pytest.raises(CalibrationError, match=message):
+        validate_calibration(calib)
+
+
+def test_numbers_must_round_to_a_finite_float32():
+    """FLOAT32_LIMIT is exact: the largest double below it casts to float32's largest value, the limit itself to
+    inf; a calibration entry at the one is accepted (and reaches the model finite), at the other refused."""
+    below = np.nextafter(contract.FLOAT32_LIMIT, 0.0)
+    with np.errstate(over="ignore"):
+        assert np.float32(below) == np.finfo(np.float32).max and np.isinf(np.float32(contract.FLOAT32_LIMIT))
+    calib = default_rig(480, 270)
+    calib["cameras"]["CAM_FRONT_LEFT"]["cam2ego"][2][3] = float(below)
+    _, T = calibration_arrays(calib)
+    assert np.isfinite(T).all() and T[2, 2, 3] == np.finfo(np.float32).max
+    calib["cameras"]["CAM_FRONT_LEFT"]["cam2ego"][2][3] = -contract.FLOAT32_LIMIT
+    with pytest.raises(CalibrationError, match=r"CAM_FRONT_LEFT cam2ego\[2\]\[3\] must be finite in float32, "
+                                               r"got -3.402823567797\d*e\+38"):
+        validate_calibration(calib)
+    calib["cameras"]["CAM_FRONT_LEFT"]["cam2ego"][2][3] = 10 ** 400            # an integer beyond any double
+    with pytest.raises(CalibrationError, match=r"cam2ego\[2\]\[3\] must be finite in float32"):
+        validate_calibration(calib)
+
+
+def test_intrinsics_rescaled_beyond_float32_are_refused():
+    """fx finite in float32 at the calibration's size, beyond it once scaled to the image: refused naming the
+    camera, never inf in the model's input."""
+    calib = default_rig(480, 270)
+    calib["cameras"]["CAM_BACK"]["intrinsic"][0][0] = 3e38
+    calibration_arrays(calib, 480, 270)
+    with pytest.raises(CalibrationError, match="CAM_BACK intrinsic rescaled for a 960x540 image is not finite"):
+        calibration_arrays(calib, 960, 540)
+
+
+def test_python_callers_may_pass_numpy_numbers_but_not_booleans():
+    calib = default_rig(480, 270)
+    K = np.array(calib["cameras"]["CAM_FRONT"]["intrinsic"], np.float32)
+    calib["cameras"]["CAM_FRONT"]["intrinsic"] = K                             # an array of numbers
+    calib["cameras"]["CAM_FRONT"]["image_size"] = [np.int64(480), np.int32(270)]
+    np.testing.assert_array_equal(validate_calibration(calib).intrinsics[0], K)
+    calib["cameras"]["CAM_FRONT"]["intrinsic"] = np.eye(3, dtype=bool)
+    with pytest.raises(CalibrationError, match=r"CAM_FRONT intrinsic\[0\]\[0\] must be a JSON number, got true"):
+        validate_calibration(calib)
+    calib["cameras"]["CAM_FRONT"]["intrinsic"] = [[1.0, 0, 1], [0, 1.0, 1], [0, 0, None]]
+    with pytest.raises(CalibrationError, match=r"intrinsic\[2\]\[2\] must be a JSON number, got null"):
+        validate_calibration(calib)
+    calib["cameras"]["CAM_FRONT"]["intrinsic"] = "[[1, 0, 0], [0, 1, 0], [0, 0, 1]]"
+    with pytest.raises(CalibrationError, match="CAM_FRONT intrinsic must be a 3x3 array of numbers"):
         validate_calibration(calib)
 
 
@@ -233,8 +279,26 @@ def test_metadata_round_trip_and_errors():
                           (bad_calib, "default_calibration: CAM_BACK intrinsic is singular")):
         with pytest.raises(ContractError, match=f"m.onnx: invalid model metadata: {message}"):
             parse_metadata(contract.encode_metadata(meta), "m.onnx")
+    overflow = _metadata()
+    overflow["default_calibration"]["cameras"]["CAM_FRONT"]["intrinsic"][0][0] = 1e308
+    with pytest.raises(ContractError, match=r"m.onnx: invalid model metadata: default_calibration: CAM_FRONT "
+                                            r"intrinsic\[0\]\[0\] must be finite in float32"):
+        parse_metadata(contract.encode_metadata(overflow), "m.onnx")
     with pytest.raises(ContractError, match="m.onnx: model metadata lacks threshold"):
         parse_metadata({k: v for k, v in props.items() if k != "threshold"}, "m.onnx")
+
+
+def test_metadata_nested_deeper_than_the_limit_is_never_decoded():
+    """A metadata value nested 2,000 deep stays text (no recursion); as the default calibration it is refused with
+    the calibration's nesting message."""
+    deep = "[" * 2000 + "]" * 2000
+    props = contract.encode_metadata(_metadata()) | {"foreign": deep}
+    assert parse_metadata(props, "m.onnx").raw["foreign"] == deep
+    calib = json.dumps(default_rig(480, 270))
+    props["default_calibration"] = calib[:-1] + f', "extra": {deep}}}'
+    with pytest.raises(ContractError, match="m.onnx: invalid model metadata: default_calibration is nested deeper "
+                                            f"than {contract.MAX_CALIBRATION_DEPTH} levels"):
+        parse_metadata(props, "m.onnx")
 
 
 def test_sessions_refuse_a_model_that_breaks_the_contract(tmp_path):

@@ -48,9 +48,10 @@ decoded at reduced scale → the size a decoded image was resized to), which eve
 :func:`occflownet.runtime.frame_inputs`.
 """
 from __future__ import annotations
-from occflownet.contract.calibration import (ASPECT_TOLERANCE, ORTHONORMAL_TOLERANCE, SINGULAR_TOLERANCE, Calibration,
-                                             CalibrationError, MissingCalibrationField, calibration_arrays,
-                                             calibration_json,
+from occflownet.contract.calibration import (ASPECT_TOLERANCE, FLOAT32_LIMIT, MAX_CALIBRATION_BYTES,
+                                             MAX_CALIBRATION_DEPTH, MAX_IMAGE_SIDE, ORTHONORMAL_TOLERANCE,
+                                             SINGULAR_TOLERANCE, Calibration, CalibrationError,
+                                             MissingCalibrationField, calibration_arrays, calibration_json,
                                              load_calibration, parse_calibration_json, rescale_intrinsics,
                                              resize_matrix, scale_intrinsics, validate_calibration)
 from occflownet.contract.images import (JPEG_REDUCTIONS, ImageHeader, crop_window, decode_reduction, decode_rgb,
@@ -62,7 +63,8 @@ from occflownet.contract.tensors import (CONTRACT_VERSION, INPUT_NAMES, INPUTS, 
                                          ContractError, TensorSpec, check_signature, session_signature)
 
 __all__ = [
-    "ASPECT_TOLERANCE", "ORTHONORMAL_TOLERANCE", "SINGULAR_TOLERANCE", "Calibration", "CalibrationError",
+    "ASPECT_TOLERANCE", "FLOAT32_LIMIT", "MAX_CALIBRATION_BYTES", "MAX_CALIBRATION_DEPTH", "MAX_IMAGE_SIDE",
+    "ORTHONORMAL_TOLERANCE", "SINGULAR_TOLERANCE", "Calibration", "CalibrationError",
     "MissingCalibrationField", "calibration_arrays", "calibration_json", "load_calibration", "parse_calibration_json",
     "rescale_intrinsics", "resize_matrix", "scale_intrinsics", "validate_calibration",
     "JPEG_REDUCTIONS", "ImageHeader", "crop_window", "decode_reduction", "decode_rgb", "image_header",

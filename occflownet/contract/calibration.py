@@ -5,6 +5,9 @@ Format and rule: :mod:`occflownet.contract` and docs/contracts.md.
 from __future__ import annotations
 
 import json
+import math
+import os
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +20,12 @@ from occflownet.occ3d import CAMERAS
 ASPECT_TOLERANCE = 0.01          # relative difference of w/h allowed when rescaling intrinsics
 ORTHONORMAL_TOLERANCE = 1e-3     # max |RᵀR − I| of a cam2ego rotation
 SINGULAR_TOLERANCE = 1e-9        # |det K| below this is singular
+MAX_CALIBRATION_BYTES = 1024 * 1024   # the largest calibration JSON read (UTF-8 bytes), on every path
+MAX_CALIBRATION_DEPTH = 32       # the deepest nesting of arrays and objects in calibration JSON (the format needs 5)
+MAX_IMAGE_SIDE = 65535           # the largest width or height an image_size may state (a JPEG's largest side)
+FLOAT32_LIMIT = 2.0 ** 128 - 2.0 ** 103   # a double rounds to a finite float32 iff its magnitude is below this
+
+_JSON_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"', re.DOTALL)
 
 
 class CalibrationError(ValueError):
@@ -62,7 +71,9 @@ class Calibration:
            (:func:`occflownet.contract.images.decode_reduction`), so s = 1/n exactly (``f' = f/n``,
            ``c' = (c + 0.5)/n − 0.5``);
         3. ``size`` (w, h): the decoded image (⌈w/n⌉ × ⌈h/n⌉) was then resized to ``size`` by its user (the
-           server's common size), s = size / decoded size; no aspect check, the resize is known exactly."""
+           server's common size), s = size / decoded size; no aspect check, the resize is known exactly.
+
+        CalibrationError naming the camera when a rescaled intrinsic is beyond float32."""
         if len(sizes) != len(self.cameras):
             raise ValueError(f"need {len(self.cameras)} image sizes, got {len(sizes)}")
         reductions = [1] * len(sizes) if reductions is None else list(reductions)
@@ -74,15 +85,36 @@ class Calibration:
             decoded = reduced_size(int(w), int(h), n)
             if size is not None and tuple(size) != decoded:
                 k = scale_intrinsics(k, size[0] / decoded[0], size[1] / decoded[1])
+            if not np.abs(k).max() < FLOAT32_LIMIT:
+                raise CalibrationError(f"{name} intrinsic rescaled for a {w}x{h} image is not finite in float32")
             K.append(k)
         return np.stack(K).astype(np.float32), self.cam2ego.astype(np.float32)
 
 
+def json_depth(text: str) -> int:
+    """The deepest nesting of arrays and objects in JSON ``text`` (brackets inside strings do not count), found
+    without parsing or recursion; exact for valid JSON."""
+    bare = np.frombuffer(_JSON_STRING.sub("", text).encode("utf-8", "surrogatepass"), np.uint8)
+    steps = (bare == ord("[")).astype(np.int64) + (bare == ord("{")) - (bare == ord("]")) - (bare == ord("}"))
+    return int(np.cumsum(steps).max(initial=0))
+
+
 def parse_calibration_json(data: bytes | str, source: str = "calibration") -> dict:
-    """Calibration JSON text/bytes → dict (a JSON object). CalibrationError naming ``source`` otherwise."""
+    """Calibration JSON text/bytes → dict (a JSON object), refusing before it is parsed text of more than
+    MAX_CALIBRATION_BYTES UTF-8 bytes or nested deeper than MAX_CALIBRATION_DEPTH arrays and objects.
+    CalibrationError naming ``source`` otherwise."""
+    size = len(data) if isinstance(data, bytes) else len(data.encode("utf-8", "surrogatepass"))
+    if size > MAX_CALIBRATION_BYTES:
+        raise CalibrationError(f"{source} is {size} bytes, over the limit of {MAX_CALIBRATION_BYTES} bytes")
     try:
-        calib = json.loads(data.decode("utf-8") if isinstance(data, bytes) else data)
-    except (UnicodeDecodeError, ValueError) as exc:
+        text = data.decode("utf-8") if isinstance(data, bytes) else data
+    except UnicodeDecodeError as exc:
+        raise CalibrationError(f"{source} is not valid UTF-8 JSON: {exc}") from None
+    if json_depth(text) > MAX_CALIBRATION_DEPTH:
+        raise CalibrationError(f"{source} is nested deeper than {MAX_CALIBRATION_DEPTH} levels of arrays and objects")
+    try:
+        calib = json.loads(text)
+    except ValueError as exc:
         raise CalibrationError(f"{source} is not valid UTF-8 JSON: {exc}") from None
     if not isinstance(calib, dict):
         raise CalibrationError(f"{source} must be a JSON object with a 'cameras' object")
@@ -90,13 +122,17 @@ def parse_calibration_json(data: bytes | str, source: str = "calibration") -> di
 
 
 def load_calibration(path: str | Path, cameras: Sequence[str] = CAMERAS) -> dict:
-    """Read and validate a calibration JSON file → the dict. FileNotFoundError, or CalibrationError whose message
-    starts with the file name."""
+    """Read and validate a calibration JSON file (at most MAX_CALIBRATION_BYTES) → the dict. FileNotFoundError, or
+    CalibrationError whose message starts with the file name."""
     path = Path(path)
     try:
-        text = path.read_bytes()
+        with open(path, "rb") as fh:
+            text = fh.read(MAX_CALIBRATION_BYTES + 1)
+            size = max(len(text), os.fstat(fh.fileno()).st_size)
     except FileNotFoundError:
         raise FileNotFoundError(f"calibration file not found: {path}") from None
+    if size > MAX_CALIBRATION_BYTES:
+        raise CalibrationError(f"{path} is {size} bytes, over the limit of {MAX_CALIBRATION_BYTES} bytes")
     calib = parse_calibration_json(text, str(path))
     try:
         validate_calibration(calib, cameras)
@@ -105,35 +141,67 @@ def load_calibration(path: str | Path, cameras: Sequence[str] = CAMERAS) -> dict
     return calib
 
 
-def _matrix(value, shape: tuple[int, int], where: str) -> np.ndarray:
+def _token(value) -> str:
+    """``value`` as it reads in JSON (``true``, ``"1266.4"``, ``1e+308``), shortened; non-finite floats as inf/nan."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return repr(value)
     try:
-        m = np.asarray(value, dtype=np.float64)
+        text = json.dumps(value)
     except (TypeError, ValueError):
-        raise CalibrationError(f"{where} must be a {shape[0]}x{shape[1]} array of numbers") from None
-    if m.shape != shape:
-        raise CalibrationError(f"{where} must be {shape[0]}x{shape[1]}, got shape {list(m.shape)}")
-    if not np.isfinite(m).all():
-        raise CalibrationError(f"{where} contains NaN or inf")
-    return m
+        text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _number(value, where: str) -> float:
+    """One JSON number → float; CalibrationError naming ``where`` for a boolean, a string or anything not a number,
+    and for a number whose float32 is not finite (the model gets float32)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise CalibrationError(f"{where} must be a JSON number, got {_token(value)}")
+    try:
+        v = float(value)
+    except OverflowError:                      # an integer beyond any double
+        v = math.inf
+    if not abs(v) < FLOAT32_LIMIT:             # also NaN
+        raise CalibrationError(f"{where} must be finite in float32, got {_token(value)}")
+    return v
+
+
+def _rows(value) -> list | None:
+    """A JSON array (list or tuple; a numpy array as its nested lists), else None."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return list(value) if isinstance(value, (list, tuple)) else None
+
+
+def _matrix(value, shape: tuple[int, int], where: str) -> np.ndarray:
+    rows = _rows(value)
+    if rows is None or len(rows) != shape[0] or any(_rows(r) is None for r in rows):
+        raise CalibrationError(f"{where} must be a {shape[0]}x{shape[1]} array of numbers")
+    rows = [_rows(r) for r in rows]
+    if any(len(r) != shape[1] for r in rows):
+        raise CalibrationError(f"{where} must be {shape[0]}x{shape[1]}, got rows of {[len(r) for r in rows]}")
+    return np.array([[_number(x, f"{where}[{i}][{j}]") for j, x in enumerate(r)] for i, r in enumerate(rows)])
 
 
 def _image_size(value, where: str) -> tuple[int, int]:
-    try:
-        w, h = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise CalibrationError(f"{where} must be [width, height]") from None
-    if not (w >= 1 and h >= 1 and w == int(w) and h == int(h)):
-        raise CalibrationError(f"{where} must be two positive integers, got {value}")
+    pair = _rows(value)
+    if pair is None or len(pair) != 2:
+        raise CalibrationError(f"{where} must be [width, height]")
+    w, h = (_number(v, f"{where}[{i}]") for i, v in enumerate(pair))
+    if not all(1 <= v <= MAX_IMAGE_SIDE and v == int(v) for v in (w, h)):
+        raise CalibrationError(f"{where} must be two integers from 1 to {MAX_IMAGE_SIDE}, got {_token(pair)}")
     return int(w), int(h)
 
 
 def validate_calibration(calib: Mapping, cameras: Sequence[str] = CAMERAS) -> Calibration:
     """Check calibration JSON for ``cameras`` (in order) → :class:`Calibration`.
 
-    Per camera: ``intrinsic`` 3×3 finite, non-singular, last row [0, 0, 1], fx, fy > 0; ``cam2ego`` 4×4 finite,
-    last row [0, 0, 0, 1], rotation orthonormal (within 1e-3) with det +1; optional ``image_size`` [w, h]
-    (positive integers), else the top-level one. Raises CalibrationError (MissingCalibrationField for a missing
-    camera or field) naming the camera and the field."""
+    Every matrix entry and image size value is a number (a JSON number: not a boolean, not a string; in Python an
+    int or float, numpy's included) whose float32 is finite (magnitude below FLOAT32_LIMIT). Per camera:
+    ``intrinsic`` 3×3, non-singular, last row [0, 0, 1], fx, fy > 0; ``cam2ego`` 4×4, last row [0, 0, 0, 1],
+    rotation orthonormal (within 1e-3) with det +1; optional ``image_size`` [w, h] (integers 1..MAX_IMAGE_SIDE),
+    else the top-level one. Raises CalibrationError (MissingCalibrationField for a missing camera or field) naming
+    the camera and the field, down to the entry (``CAM_FRONT intrinsic[0][0] must be a JSON number, got true``)."""
     if not isinstance(calib, Mapping):
         raise CalibrationError("calibration must be a JSON object with a 'cameras' object")
     cams = calib.get("cameras")

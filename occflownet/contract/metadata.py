@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from occflownet.contract.calibration import CalibrationError, validate_calibration
+from occflownet.contract.calibration import (MAX_CALIBRATION_DEPTH, CalibrationError, json_depth,
+                                             parse_calibration_json, validate_calibration)
 from occflownet.contract.tensors import CONTRACT_VERSION, NUM_CAMERAS, ContractError
 
 # Keys every export writes; REQUIRED_METADATA_KEYS are the ones a consumer cannot do without.
@@ -48,11 +49,12 @@ def encode_metadata(meta: Mapping[str, object]) -> dict[str, str]:
 
 
 def decode_metadata(props: Mapping[str, str]) -> dict:
-    """``metadata_props`` → values; a value that is not JSON (a foreign key) stays a plain string."""
+    """``metadata_props`` → values; a value that is not JSON (a foreign key), or is nested deeper than
+    MAX_CALIBRATION_DEPTH arrays and objects (never decoded), stays a plain string."""
     out = {}
     for key, text in props.items():
         try:
-            out[key] = json.loads(text)
+            out[key] = json.loads(text) if json_depth(text) <= MAX_CALIBRATION_DEPTH else text
         except (TypeError, ValueError):
             out[key] = text
     return out
@@ -84,6 +86,8 @@ def parse_metadata(props: Mapping[str, str], source: str) -> ModelMetadata:
         if len(cameras) != NUM_CAMERAS or len(set(cameras)) != NUM_CAMERAS:
             raise ValueError(f"cameras must be {NUM_CAMERAS} distinct names, got {list(cameras)}")
         calib = raw["default_calibration"]
+        if isinstance(calib, str):      # not decoded: the calibration rules say why (size, nesting, JSON)
+            calib = parse_calibration_json(calib, "default_calibration")
         if not isinstance(calib, dict) or "image_size" not in calib:
             raise ValueError("default_calibration must be calibration JSON with image_size [w, h]")
         try:
