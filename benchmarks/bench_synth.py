@@ -59,8 +59,8 @@ def main(argv=None) -> int:
     n = args.scenes * args.frames
     with tempfile.TemporaryDirectory() as tmp:
         wall, cpu = time.perf_counter(), time.process_time()
-        generate(tmp, args.scenes, args.frames, args.seed, args.width, args.height, preview=args.preview,
-                 progress=False, sweeps=args.sweeps)
+        generate(tmp, scenes=args.scenes, frames=args.frames, seed=args.seed, width=args.width, height=args.height,
+                 preview=args.preview, progress=False, sweeps=args.sweeps)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     print(f"generate: {n} keyframes at {args.width}x{args.height}, {args.sweeps} sweeps between keyframes"
           f"{', with previews' if args.preview else ''}, labels included: "

@@ -37,7 +37,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        res = generate(root, args.scenes, args.frames, args.seed, args.width, args.height, progress=False)
+        res = generate(root, scenes=args.scenes, frames=args.frames, seed=args.seed, width=args.width,
+                       height=args.height, progress=False)
         own, vox = lidar_label_agreement(root, res.version)
         masks = []
         for p in sorted((root / "gts").glob("*/*/labels.npz")):

@@ -24,12 +24,17 @@ def test_synth_command_writes_dataset_and_previews(tmp_path, capsys):
 
 
 def test_synth_command_rejects_bad_options(tmp_path, capsys):
+    import pytest
+
     base = ["synth", "--out", str(tmp_path / "x"), "--no-progress"]
-    assert main(base + ["--margin", "10"]) == 2
-    assert "margin must be at least 45 m" in capsys.readouterr().err
-    assert main(base + ["--frames", "0"]) == 2
-    assert "at least one" in capsys.readouterr().err
-    assert main(base + ["--lanes", "3", "1"]) == 2
+    for bad, message in ((["--margin", "10"], "--margin must be at least 45"),
+                         (["--frames", "0"], "--frames must be at least 1")):
+        with pytest.raises(SystemExit) as refused:                 # refused by the parser, from the fields' minimum
+            main(base + bad)
+        assert refused.value.code == 2 and message in capsys.readouterr().err
+    assert main(base + ["--lanes", "3", "1"]) == 2                  # refused by WorldConfig: MIN <= MAX
+    assert "lanes (MIN, MAX) must satisfy" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
 
 
 def test_world_config_checks_its_own_ranges():

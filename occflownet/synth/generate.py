@@ -19,7 +19,7 @@ import shutil
 import sys
 import time
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +28,7 @@ from occflownet.occ3d import CAMERAS, DRIVEABLE_SURFACE, LIDAR
 from occflownet.geometry import yaw_to_quaternion
 from occflownet.labels import LabelConfig, label_root
 from occflownet.labels.npz import write_uint8_npz
+from occflownet.options import check_fields, option
 from occflownet.synth.frame import Keyframe, SensorRig, render_keyframe, render_sweep, sweep_times_us
 from occflownet.synth.layout import WorldConfig, build_world
 from occflownet.synth.writer import (Tables, calibrated_sensor_records, link, pose_record, token,
@@ -37,6 +38,26 @@ DEFAULT_VERSION = "v1.0-trainval"
 DEFAULT_SWEEPS = 4  # LiDAR sweeps between keyframes (10 Hz; nuScenes records 9, at 20 Hz)
 FIRST_TIMESTAMP_US = 1533151603000000
 ANNOTATION_RANGE_M = 70.0  # agents whose centre is this close to the ego (xy) are annotated (covers the grid)
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """What :func:`generate` writes besides the scenes' layout (:class:`~occflownet.synth.layout.WorldConfig`):
+    how many scenes and keyframes, images and sweeps, and how it treats a folder that holds a dataset.
+    `occflownet synth` derives its options from these fields (``occflownet/options.py``)."""
+
+    scenes: int = option(1, "number of scenes (the last is val if >= 2)", minimum=1)
+    frames: int = option(6, "keyframes per scene, 2 Hz", minimum=1)
+    seed: int = option(0, "random seed; same seed, same files")
+    width: int = option(480, "image width in pixels (0.3 x nuScenes)", minimum=16)
+    height: int = option(270, "image height in pixels", minimum=16)
+    sweeps: int = option(DEFAULT_SWEEPS, "LiDAR sweeps between consecutive keyframes (nuScenes has 9)", minimum=0)
+    version: str = option(DEFAULT_VERSION, "dataset version folder")
+    preview: bool = option(False, "also write DIR/preview/<sample token>.png")
+    overwrite: bool = option(False, "replace a dataset already in DIR")
+
+    def __post_init__(self):
+        check_fields(self)
 
 
 @dataclass
@@ -71,26 +92,22 @@ def _clear(root: Path, version: str, overwrite: bool) -> None:
                 shutil.rmtree(sub)
 
 
-def generate(out, scenes: int = 1, frames: int = 6, seed: int = 0, width: int = 480, height: int = 270,
-             version: str = DEFAULT_VERSION, preview: bool = False, config: WorldConfig = WorldConfig(),
-             rig: SensorRig | None = None, progress: bool = True, overwrite: bool = False,
-             sweeps: int = DEFAULT_SWEEPS, labels: LabelConfig = LabelConfig()) -> SynthResult:
-    """Generate ``scenes`` scenes of ``frames`` keyframes each under ``out`` (``sweeps`` LiDAR sweeps between
-    consecutive keyframes), then label it with ``labels`` (``occflownet.labels.label_root``). Deterministic for
-    ``seed``."""
+def generate(out, settings: SynthConfig = SynthConfig(), *, config: WorldConfig = WorldConfig(),
+             rig: SensorRig | None = None, progress: bool = True, labels: LabelConfig = LabelConfig(),
+             **changes) -> SynthResult:
+    """Generate ``settings.scenes`` scenes of ``settings.frames`` keyframes each under ``out`` (``settings.sweeps``
+    LiDAR sweeps between consecutive keyframes), laid out by ``config``, then label it with ``labels``
+    (``occflownet.labels.label_root``). ``changes``: fields of :class:`SynthConfig` that replace those of
+    ``settings`` (``generate(out, scenes=2, seed=3)``). Deterministic for the seed."""
     import cv2
     from tqdm import tqdm
 
-    if scenes < 1 or frames < 1:
-        raise ValueError(f"need at least one scene and one frame, got scenes={scenes}, frames={frames}")
-    if width < 16 or height < 16:
-        raise ValueError(f"image size {width}x{height} too small (min 16x16)")
-    if sweeps < 0:
-        raise ValueError(f"sweeps must be >= 0, got {sweeps}")
+    job = replace(settings, **changes)          # checks the values (SynthConfig.__post_init__)
+    scenes, frames, seed, version, sweeps = job.scenes, job.frames, job.seed, job.version, job.sweeps
     start = time.perf_counter()
     root = Path(out)
-    _clear(root, version, overwrite)
-    rig = rig or SensorRig.default(width, height)
+    _clear(root, version, job.overwrite)
+    rig = rig or SensorRig.default(job.width, job.height)
     tables = Tables(seed)
     bar = tqdm(total=scenes * frames, desc="synth keyframes", unit="kf", file=sys.stderr, disable=not progress)
     scene_names, log_tokens, first_world = [], [], None
@@ -106,8 +123,8 @@ def generate(out, scenes: int = 1, frames: int = 6, seed: int = 0, width: int = 
         {"train": scene_names, "val": scene_names}
     with open(root / version / "splits.json", "w") as f:
         json.dump(splits, f, indent=1)
-    label_root(root, version, labels, progress=progress)
-    if preview:
+    label_root(root, labels, version=version, progress=progress)
+    if job.preview:
         _write_previews(root, version, cv2)
     return SynthResult(root, version, scene_names, scenes * frames, time.perf_counter() - start)
 

@@ -11,34 +11,42 @@ from dataclasses import dataclass
 import numpy as np
 
 from occflownet.occ3d import DRIVEABLE_SURFACE, OTHER_FLAT, SIDEWALK, TERRAIN
+from occflownet.options import check_fields, option
 from occflownet.synth.agents import default_attribute, instance_color, make_agent
 from occflownet.synth.materials import MATERIALS, PAINT_WHITE, PAINT_YELLOW
 from occflownet.synth.world import Boxes, GroundRaster, World, scene_to_global
 
 KEYFRAME_INTERVAL_S = 0.5  # 2 Hz keyframes, like nuScenes
+SCENE_SIZE = "scene size"  # the --help section of WorldConfig's options
 
 
 @dataclass(frozen=True)
 class WorldConfig:
-    """Size and density of a synthetic scene (the `synth` command's scene options)."""
+    """Size and density of a synthetic scene; `occflownet synth` derives its scene-size options from these fields
+    (``occflownet/options.py``)."""
 
-    margin: float = 100.0  # world extent [m] before the ego's start / after its end, and to each side
-    ego_speed: tuple[float, float] = (4.0, 8.0)  # m/s, uniform range per scene
-    lanes: tuple[int, int] = (1, 2)  # lanes per direction, inclusive range
-    traffic: float = 1.0  # scale of the moving/parked vehicle density
-    pedestrians: float = 1.0  # scale of the pedestrian density
-    cross_street_probability: float = 0.7
-    raster_res: float = 0.1  # ground raster cell [m]
+    margin: float = option(100.0, "world extent in metres beyond the ego's path and to each side (the grid reaches "
+                                  "40 m from the ego)", minimum=45.0, group=SCENE_SIZE)
+    ego_speed: tuple[float, float] = option((4.0, 8.0), "ego speed range in m/s, drawn per scene (MAX at most 20)",
+                                            minimum=0.0, group=SCENE_SIZE)
+    lanes: tuple[int, int] = option((1, 2), "lanes per direction, drawn per scene (MAX at most 4)", minimum=1,
+                                    group=SCENE_SIZE)
+    traffic: float = option(1.0, "vehicle density scale (moving and parked; above 0)", minimum=0.0,
+                            group=SCENE_SIZE)
+    pedestrians: float = option(1.0, "pedestrian density scale", minimum=0.0, group=SCENE_SIZE)
+    cross_street_probability: float = option(0.7, "probability of a cross street per scene", minimum=0.0,
+                                             flag="cross-street", group=SCENE_SIZE)
+    raster_res: float = 0.1  # ground raster cell [m]; not a command-line option
 
     def __post_init__(self):
-        if self.margin < 45.0:
-            raise ValueError("margin must be at least 45 m (the grid reaches 40 m from the ego)")
-        if not 1 <= self.lanes[0] <= self.lanes[1] <= 4:
-            raise ValueError("lanes (MIN, MAX) must satisfy 1 <= MIN <= MAX <= 4")
-        if not 0.0 <= self.ego_speed[0] <= self.ego_speed[1] <= 20.0:
-            raise ValueError("ego_speed (MIN, MAX) must satisfy 0 <= MIN <= MAX <= 20 m/s")
-        if self.traffic <= 0 or self.pedestrians < 0 or not 0 <= self.cross_street_probability <= 1:
-            raise ValueError("traffic must be > 0, pedestrians >= 0, cross_street_probability in [0, 1]")
+        check_fields(self)                      # the smallest values; the ranges' upper ends and order below
+        if not self.lanes[0] <= self.lanes[1] <= 4:
+            raise ValueError(f"lanes (MIN, MAX) must satisfy 1 <= MIN <= MAX <= 4, got {self.lanes}")
+        if not self.ego_speed[0] <= self.ego_speed[1] <= 20.0:
+            raise ValueError(f"ego_speed (MIN, MAX) must satisfy 0 <= MIN <= MAX <= 20 m/s, got {self.ego_speed}")
+        if self.traffic <= 0 or self.cross_street_probability > 1:
+            raise ValueError(f"traffic must be > 0 and cross_street_probability at most 1, got {self.traffic} and "
+                             f"{self.cross_street_probability}")
 
 
 class _Builder:
