@@ -1,27 +1,20 @@
 """`occflownet prepare`: build the sample index of a nuScenes-format root, count classes, precompute flow.
 
-The work is :func:`occflownet.data.prepare.prepare`; this module parses the arguments and prints. Re-running is
-idempotent; ``--recount`` forces a recount of the classes.
+The work is :func:`occflownet.data.prepare.prepare`; the options are the fields of
+:class:`occflownet.data.prepare.PrepareConfig` (``occflownet/options.py``), plus ``--dataroot`` and ``--quiet``.
+Re-running is idempotent; ``--recount`` forces a recount of the classes.
 """
 import sys
+
+from occflownet.data.prepare import PrepareConfig
+from occflownet.options import add_options, config_kwargs
 
 HELP = "build the sample index (temporal neighbours, splits), class counts and weights, flow"
 
 
 def add_arguments(parser):
     parser.add_argument("--dataroot", required=True, help="nuScenes-format root (holds <version>/*.json)")
-    parser.add_argument("--version", default=None,
-                        help="table directory, e.g. v1.0-mini (default: the only one under DATAROOT)")
-    parser.add_argument("--split", default=None,
-                        help="split whose LiDAR points are counted for the class weights "
-                             "(default: 'train' when the root defines it, else 'all')")
-    parser.add_argument("--verify-files", action="store_true",
-                        help="check that every image, LiDAR, lidarseg and Occ3D file referenced exists")
-    parser.add_argument("--recount", action="store_true", help="recount classes even if the counts are current")
-    parser.add_argument("--flow-horizon", type=int, default=3,
-                        help="frames t in [-O, O] for which box flows are precomputed (training's --horizon <= O)")
-    parser.add_argument("--skip-class-counts", action="store_true",
-                        help="write the index only (e.g. a root without nuScenes-lidarseg)")
+    add_options(parser, PrepareConfig)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -31,9 +24,8 @@ def run(args) -> int:
 
     print(f"reading the tables under {args.dataroot} ...", file=sys.stderr)
     try:
-        result = prepare(args.dataroot, args.version, args.split, verify_files=args.verify_files,
-                         recount=args.recount, flow_horizon=args.flow_horizon,
-                         class_counts=not args.skip_class_counts, progress=not args.quiet, on_index=_print_summary)
+        result = prepare(args.dataroot, PrepareConfig(**config_kwargs(args, PrepareConfig)),
+                         progress=not args.quiet, on_index=_print_summary)
     except UnknownSplit as e:
         print(f"occflownet prepare: {e}", file=sys.stderr)
         return 2

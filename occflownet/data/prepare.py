@@ -10,7 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from occflownet.data.builder import build_index
@@ -19,10 +19,29 @@ from occflownet.data.flow import precompute_flow
 from occflownet.data.index import SampleIndex, index_dir, save_index
 from occflownet.data.rays import RayBuilder, RayConfig
 from occflownet.data.tables import DatasetError
+from occflownet.options import check_fields, option
 
 
 class UnknownSplit(DatasetError):
     """The split asked for the class counts is not defined by the root."""
+
+
+@dataclass(frozen=True)
+class PrepareConfig:
+    """What :func:`prepare` does to a root; `occflownet prepare` derives its options from these fields
+    (``occflownet/options.py``)."""
+
+    version: str | None = option(None, "table directory, e.g. v1.0-mini (default: the only one under DATAROOT)")
+    split: str | None = option(None, "split whose LiDAR points are counted for the class weights (default: 'train' "
+                                     "when the root defines it, else 'all')")
+    verify_files: bool = option(False, "check that every image, LiDAR, lidarseg and Occ3D file referenced exists")
+    recount: bool = option(False, "recount classes even if the counts are current")
+    flow_horizon: int = option(3, "box flows are precomputed for the frames t in [-FLOW_HORIZON, FLOW_HORIZON] "
+                                  "(training's --horizon must not exceed it)", minimum=0)
+    skip_class_counts: bool = option(False, "write the index only (e.g. a root without nuScenes-lidarseg)")
+
+    def __post_init__(self):
+        check_fields(self)
 
 
 @dataclass
@@ -51,32 +70,34 @@ def counts_split(index: SampleIndex, split: str | None) -> str:
     return name
 
 
-def prepare(dataroot, version: str | None = None, split: str | None = None, verify_files: bool = False,
-            recount: bool = False, flow_horizon: int = 3, class_counts: bool = True, progress: bool = False,
-            on_index: Callable[[SampleIndex], None] | None = None) -> PrepareResult:
-    """Index ``dataroot`` (``version``: its table folder, default the only one), count the classes of ``split``
-    (unless ``class_counts`` is False or the counts are current and ``recount`` is False), write the index, then
-    the box flows of t ∈ [−flow_horizon, flow_horizon]. ``on_index`` is called with the fresh index before the
-    (slow) counting starts. Raises DatasetError (UnknownSplit for an unknown split) naming what is wrong."""
-    index = build_index(dataroot, version, verify_files=verify_files)
+def prepare(dataroot, config: PrepareConfig = PrepareConfig(), *, progress: bool = False,
+            on_index: Callable[[SampleIndex], None] | None = None, **changes) -> PrepareResult:
+    """Index ``dataroot`` (``config.version``: its table folder, default the only one), count the classes of
+    ``config.split`` (unless ``skip_class_counts``, or the counts are current and ``recount`` is False), write the
+    index, then the box flows of t ∈ [−flow_horizon, flow_horizon]. ``changes``: fields of :class:`PrepareConfig`
+    that replace those of ``config`` (``prepare(root, recount=True)``). ``on_index`` is called with the fresh
+    index before the (slow) counting starts. Raises DatasetError (UnknownSplit for an unknown split) naming what is
+    wrong."""
+    config = replace(config, **changes)
+    index = build_index(dataroot, config.version, verify_files=config.verify_files)
     if on_index is not None:
         on_index(index)
     name, reused = None, False
-    if class_counts:
-        name = counts_split(index, split)
-        config = RayConfig()
-        fingerprint = class_stats_fingerprint(index, name, config)
+    if not config.skip_class_counts:
+        name = counts_split(index, config.split)
+        rays = RayConfig()
+        fingerprint = class_stats_fingerprint(index, name, rays)
         previous = _previous_meta(index_dir(dataroot, index.version))
-        reused = (not recount and previous.get("class_stats_fingerprint") == fingerprint
+        reused = (not config.recount and previous.get("class_stats_fingerprint") == fingerprint
                   and "class_stats" in previous)
         if reused:
             index.meta["class_stats"] = previous["class_stats"]
         else:
-            builder = RayBuilder(index, dataroot, config, cache_size=0)
+            builder = RayBuilder(index, dataroot, rays, cache_size=0)
             index.meta["class_stats"] = compute_class_stats(builder, name, progress=progress).to_dict()
         index.meta["class_stats_fingerprint"] = fingerprint
     out = save_index(index, dataroot)
-    flow = precompute_flow(index, dataroot, horizon=flow_horizon, progress=progress)
+    flow = precompute_flow(index, dataroot, horizon=config.flow_horizon, progress=progress)
     return PrepareResult(index, out, flow, name, reused)
 
 
