@@ -140,7 +140,7 @@ def test_rerun_skips_refuses_other_settings_and_foreign_labels(tmp_path):
 
 def test_shards_and_workers_give_the_same_files(labelled, tmp_path):
     fx, gts = labelled
-    parts = [label_root(fx.root, out=tmp_path / "sharded", shard=(i, 2), progress=False) for i in range(2)]
+    parts = [label_root(fx.root, out=tmp_path / "sharded", shard=f"{i}/2", progress=False) for i in range(2)]
     assert sorted(parts[0].scenes + parts[1].scenes) == ["scene-a", "scene-b"]
     assert not set(parts[0].scenes) & set(parts[1].scenes)
     label_root(fx.root, out=tmp_path / "workers", workers=2, progress=False)
@@ -149,7 +149,7 @@ def test_shards_and_workers_give_the_same_files(labelled, tmp_path):
         assert (tmp_path / "sharded" / "gts" / rel).read_bytes() == f.read_bytes()
         assert (tmp_path / "workers" / "gts" / rel).read_bytes() == f.read_bytes()
     with pytest.raises(ValueError, match="shard"):
-        label_root(fx.root, out=tmp_path / "x", shard=(2, 2), progress=False)
+        label_root(fx.root, out=tmp_path / "x", shard="2/2", progress=False)
 
 
 def test_bad_input_is_named(tmp_path):

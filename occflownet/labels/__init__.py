@@ -8,10 +8,10 @@ voxel). ``label_root`` writes ``gts/<scene>/<token>/labels.npz``; the pieces (``
 ``label_keyframe``, ``vote``, ``camera_mask``) work on arrays for other callers.
 
 Submodules: ``config`` (LabelConfig), ``tracks`` (boxes in time), ``accumulate`` (the scene's points),
-``voxels`` (vote and masks), ``keyframe`` (one keyframe), ``pipeline`` (a whole root), ``npz`` (the file).
+``voxels`` (vote and masks), ``keyframe`` (one keyframe), ``pipeline`` (a whole root: LabelRun), ``npz`` (the file).
 """
 from occflownet.labels.config import LabelConfig
 from occflownet.labels.npz import write_labels_npz
-from occflownet.labels.pipeline import LabelError, LabelReport, label_root
+from occflownet.labels.pipeline import LabelError, LabelReport, LabelRun, label_root
 
-__all__ = ["LabelConfig", "LabelError", "LabelReport", "label_root", "write_labels_npz"]
+__all__ = ["LabelConfig", "LabelError", "LabelReport", "LabelRun", "label_root", "write_labels_npz"]

@@ -4,8 +4,9 @@ Writes ``<out>/gts/<scene name>/<sample token>/labels.npz`` (``out`` defaults to
 ``<out>/gts/labels.json`` (the settings and the package version). Each file appears whole or not at all; a rerun
 skips the keyframes whose file exists (``overwrite`` redoes them) and refuses to mix settings: labels made with
 other settings, or a ``gts/`` the pipeline did not write (e.g. downloaded Occ3D labels), are an error unless
-``overwrite``. Scenes are labelled in ``workers`` processes; ``shard=(i, n)`` takes the scenes whose position in name
-order is i mod n, so that n machines can split a dataset.
+``overwrite``. Scenes are labelled in ``workers`` processes; ``shard="i/n"`` takes the scenes whose position in name
+order is i mod n, so that n machines can split a dataset. What a call reads and writes is a :class:`LabelRun`; how
+the labels are made, a :class:`~occflownet.labels.config.LabelConfig`.
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,7 @@ from occflownet.labels.accumulate import load_scene_cloud
 from occflownet.labels.config import LabelConfig
 from occflownet.labels.keyframe import label_keyframe, window_sweeps
 from occflownet.labels.npz import write_labels_npz
+from occflownet.options import check_fields, option
 from occflownet.worker_processes import spawn_context
 
 SETTINGS_FILE = "labels.json"
@@ -36,6 +38,34 @@ SETTINGS_FILE = "labels.json"
 
 class LabelError(DatasetError):
     """The root cannot be labelled as asked (no lidarseg without geometry-only, settings that differ, ...)."""
+
+
+@dataclass(frozen=True)
+class LabelRun:
+    """Which root version one :func:`label_root` call reads, where it writes, which scenes it takes and how it
+    spreads them over processes: how the labels are made is :class:`LabelConfig`. `occflownet labels` derives its
+    options from these fields and LabelConfig's (``occflownet/options.py``)."""
+
+    version: str | None = option(None, "table directory (default: the only one under DATAROOT)")
+    out: str | None = option(None, "write OUT/gts/... instead of DATAROOT/gts/...")
+    workers: int = option(1, "scenes labelled in parallel processes", minimum=1)
+    shard: str = option("0/1", "I/N: label the scenes whose position in name order is I mod N (0/1: all)")
+    overwrite: bool = option(False, "redo existing labels (also those made with other settings or by another tool)")
+
+    def __post_init__(self):
+        check_fields(self)
+        shard_pair(self.shard)
+
+
+def shard_pair(shard: str) -> tuple[int, int]:
+    """``shard`` "I/N" as (I, N); ValueError naming it unless 0 <= I < N."""
+    try:
+        i, n = (int(v) for v in str(shard).split("/"))
+    except ValueError:
+        raise ValueError(f"shard must be I/N, got {shard!r}") from None
+    if not 0 <= i < n:
+        raise ValueError(f"shard must be I/N with 0 <= I < N, got {shard!r}")
+    return i, n
 
 
 @dataclass
@@ -51,28 +81,30 @@ class LabelReport:
     warnings: list[str] = field(default_factory=list)
 
 
-def label_root(dataroot, version: str | None = None, config: LabelConfig = LabelConfig(), out=None,
-               workers: int = 1, shard: tuple[int, int] = (0, 1), overwrite: bool = False,
-               progress: bool = True) -> LabelReport:
-    """Label every keyframe of the scenes of ``shard`` (see the module docstring); DatasetError naming the file or
-    record at fault on bad input, LabelError when the root cannot be labelled as asked."""
+def label_root(dataroot, config: LabelConfig = LabelConfig(), run: LabelRun = LabelRun(), *,
+               progress: bool = True, **changes) -> LabelReport:
+    """Label every keyframe of the scenes of ``run.shard`` (see the module docstring) as ``config`` says.
+    ``changes``: fields of :class:`LabelRun` that replace those of ``run`` (``label_root(root, out=o, workers=2)``).
+    DatasetError naming the file or record at fault on bad input, LabelError when the root cannot be labelled as
+    asked, ValueError for a bad ``run``."""
     start = time.perf_counter()
-    tables = load_tables(dataroot, version)
+    run = replace(run, **changes)
+    tables = load_tables(dataroot, run.version)
     index = index_from_tables(tables, occupancy=False)
     _require_lidarseg(index, config)
-    gts = Path(out if out is not None else dataroot) / "gts"
-    _check_settings(gts, config, overwrite)
-    names = _shard(index.scene_names, shard)
+    gts = Path(run.out if run.out is not None else dataroot) / "gts"
+    _check_settings(gts, config, run.overwrite)
+    names = _shard(index.scene_names, shard_pair(run.shard))
     report = LabelReport(gts, names)
     sweeps = scene_sweeps(tables, index)
     jobs = []
     for name in names:
-        positions = _pending(index, name, gts, overwrite)
+        positions = _pending(index, name, gts, run.overwrite)
         report.skipped += _scene_size(index, name) - len(positions)
         if positions:
             jobs.append((name, positions))
     bar = _bar(sum(len(p) for _, p in jobs), progress)
-    for scene_report in _run(jobs, index, sweeps, tables.dataroot, gts, config, workers):
+    for scene_report in _run(jobs, index, sweeps, tables.dataroot, gts, config, run.workers):
         report.written += len(scene_report["keyframes"])
         report.keyframes += scene_report["keyframes"]
         report.warnings += scene_report["warnings"]
@@ -112,8 +144,6 @@ def _check_settings(gts: Path, config: LabelConfig, overwrite: bool) -> None:
 
 def _shard(scene_names: list[str], shard: tuple[int, int]) -> list[str]:
     i, n = shard
-    if not (n >= 1 and 0 <= i < n):
-        raise ValueError(f"shard must be i/n with 0 <= i < n, got {i}/{n}")
     return [name for j, name in enumerate(sorted(scene_names)) if j % n == i]
 
 
