@@ -5,43 +5,21 @@ The data is checked first (index present, split known, every sample labelled), t
 run starts. `--model` runs onnxruntime only and never imports torch."""
 import sys
 
+from occflownet.eval.evaluate import EvalConfig
+from occflownet.options import add_options, config_kwargs
+
 HELP = "evaluate a checkpoint or ONNX model (mIoU, RayIoU); JSON to stdout, table to stderr"
 
 
-def _positive_int(text: str) -> int:
-    import argparse
-
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
 def add_arguments(p):
+    """The model source, ``--dataroot``, the fields of EvalConfig (``occflownet/options.py``), ``--output`` and
+    ``--quiet``."""
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--checkpoint", help="occflownet checkpoint (its weights are the EMA weights), run in torch")
     src.add_argument("--model", help="exported ONNX model, run by onnxruntime (no torch)")
     p.add_argument("--dataroot", required=True,
                    help="nuScenes-format root with Occ3D gts/, indexed by `occflownet prepare --dataroot DIR`")
-    p.add_argument("--version", default=None, help="dataset version (default: the only one indexed)")
-    p.add_argument("--split", default="val", help="split to evaluate (default: val)")
-    p.add_argument("--save-predictions", default=None, metavar="DIR",
-                   help="write DIR/<sample_token>.npz (occupancy uint8 [200,200,16], density float32) per sample")
-    p.add_argument("--html", type=_positive_int, default=None, metavar="N",
-                   help="with --save-predictions: also write DIR/<sample_token>.html, the 3D viewer of the ground "
-                        "truth beside the prediction, for the first N samples")
-    p.add_argument("--max-samples", type=_positive_int, default=None, metavar="N",
-                   help="evaluate only the first N samples of the split")
-    p.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (the slower metric, ~0.3 s per sample)")
-    p.add_argument("--no-fog", action="store_true",
-                   help="skip the fog metric (predicted vs labelled occupied voxels in mask_camera, split by whether "
-                        "a training ray crosses them; builds the rays of t in [-3, 3], ~1.5 s per sample)")
-    p.add_argument("--batch-size", type=_positive_int, default=1, metavar="N", help="samples per model call")
-    p.add_argument("--threads", type=_positive_int, default=None,
-                   help="with --model: onnxruntime intra-op threads (default: all cores)")
+    add_options(p, EvalConfig)
     p.add_argument("--output", default=None, metavar="FILE", help="also write the JSON result to FILE")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -59,7 +37,8 @@ def run(args) -> int:
     from occflownet.eval.evaluate import evaluate, select_samples
 
     source = args.model or args.checkpoint
-    if args.html and not args.save_predictions:
+    cfg = EvalConfig(**config_kwargs(args, EvalConfig))
+    if cfg.html and not cfg.save_predictions:
         print("occflownet eval: error: --html needs --save-predictions DIR (the viewer files go there)",
               file=sys.stderr)
         return 2
@@ -67,20 +46,18 @@ def run(args) -> int:
         if not Path(source).is_file():
             what = "ONNX model" if args.model else "checkpoint"
             raise FileNotFoundError(f"{what} not found: {source}")
-        samples = select_samples(args.dataroot, args.version, args.split, args.max_samples)
+        samples = select_samples(args.dataroot, cfg.version, cfg.split, cfg.max_samples)
         if args.model:
             from occflownet.runtime import OnnxPredictor
 
-            predict = OnnxPredictor.open(args.model, args.threads)
+            predict = OnnxPredictor.open(args.model, cfg.threads)
         else:
             from occflownet.model import model_from_source
             from occflownet.runtime import TorchPredictor
 
             predict = TorchPredictor(model_from_source(args.checkpoint))
-        result = evaluate(samples, predict, batch_size=args.batch_size, save_predictions=args.save_predictions,
-                          rayiou=not args.no_rayiou, progress=not args.quiet,
-                          fog_horizon=None if args.no_fog else 3)
-        viewers = _write_viewers(samples, Path(args.save_predictions), args.html) if args.html else []
+        result = evaluate(samples, predict, cfg, progress=not args.quiet)
+        viewers = _write_viewers(samples, Path(cfg.save_predictions), cfg.html) if cfg.html else []
     except (DatasetError, FileNotFoundError, KeyError, ValueError, OSError) as e:
         print(f"occflownet eval: error: {_message(e)}", file=sys.stderr)
         return 1

@@ -26,7 +26,7 @@ from __future__ import annotations
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +39,36 @@ from occflownet.data.tables import DatasetError
 from occflownet.eval import OccupancyMetric, RayIoUMetric, scene_ray_origins
 from occflownet.eval.fog import FogMetric, crossed_voxels
 from occflownet.heap import reuse_freed_memory
+from occflownet.options import check_fields, option
 from occflownet.runtime import ModelInputs, Predictor, frame_inputs
+
+
+# ----------------------------------------------------------------------------------------------- options
+@dataclass(frozen=True)
+class EvalConfig:
+    """What one evaluation covers and measures: the samples (:func:`select_samples`), the metrics and batches
+    (:func:`evaluate`), what is written beside the result and the onnxruntime threads. `occflownet eval` derives
+    its options from these fields (``occflownet/options.py``)."""
+
+    version: str | None = option(None, "dataset version (default: the only one indexed)")
+    split: str = option("val", "split to evaluate")
+    max_samples: int | None = option(None, "evaluate only this many samples, the first of the split", minimum=1)
+    batch_size: int = option(1, "samples per model call", minimum=1)
+    rayiou: bool = option(True, "RayIoU (the slower metric, ~0.3 s per sample)")
+    fog: bool = option(True, "the fog metric: predicted vs labelled occupied voxels in mask_camera, split by "
+                             "whether a training ray of the frames within --fog-horizon crosses them; builds "
+                             "those rays, ~1.5 s per sample")
+    fog_horizon: int = option(3, "the fog metric's rays come from the frames t in [-FOG_HORIZON, FOG_HORIZON]",
+                              minimum=0)
+    save_predictions: str | None = option(None, "folder that receives <sample_token>.npz (occupancy uint8 "
+                                                "[200,200,16], density float32) per sample")
+    html: int | None = option(None, "with --save-predictions: also write <sample_token>.html there, the 3D viewer "
+                                    "of the ground truth beside the prediction, for this many samples (the first)",
+                              minimum=1)
+    threads: int | None = option(None, "with --model: onnxruntime intra-op threads (default: all cores)", minimum=1)
+
+    def __post_init__(self):
+        check_fields(self)
 
 
 # ----------------------------------------------------------------------------------------------- samples
@@ -56,8 +85,8 @@ class EvalSamples:
         return len(self.positions)
 
 
-def select_samples(dataroot, version: str | None = None, split: str = "val",
-                   max_samples: int | None = None) -> EvalSamples:
+def select_samples(dataroot, version: str | None = EvalConfig.version, split: str = EvalConfig.split,
+                   max_samples: int | None = EvalConfig.max_samples) -> EvalSamples:
     """The samples of ``split`` (the first ``max_samples`` of them if given) of a prepared root.
 
     Errors (DatasetError / KeyError) name the problem: no index (run ``occflownet prepare``), an unknown split (lists
@@ -216,7 +245,8 @@ class _PredictionWriter:
             self.pool.shutdown(wait=True)
 
 
-def predictions(samples: EvalSamples, predict: Predictor, batch_size: int = 1, timing: dict | None = None):
+def predictions(samples: EvalSamples, predict: Predictor, batch_size: int = EvalConfig.batch_size,
+                timing: dict | None = None):
     """Yield ``(position, token, occupancy uint8 [200, 200, 16], density float32 [200, 200, 16], labels)`` for
     every sample, in order (``labels``: its Occupancy). Batches of ``batch_size`` (split where the image size
     changes); the next batch loads on a background thread while the model runs. ``timing``, if given, gains the
@@ -240,32 +270,36 @@ def predictions(samples: EvalSamples, predict: Predictor, batch_size: int = 1, t
                 yield from zip(batch.positions, batch.tokens, occupancy, density, batch.labels)
 
 
-def evaluate(samples: EvalSamples, predict: Predictor, *, batch_size: int = 1, save_predictions=None,
-             rayiou: bool = True, progress: bool = True, fog_horizon: int | None = 3) -> dict:
-    """Run ``predict`` over ``samples`` (batches of ``batch_size``) and return the JSON-ready result::
+def evaluate(samples: EvalSamples, predict: Predictor, config: EvalConfig = EvalConfig(), *,
+             progress: bool = True, **changes) -> dict:
+    """Run ``predict`` over ``samples`` (batches of ``config.batch_size``) and return the JSON-ready result::
 
         {"dataroot", "version", "split", "samples", "batch_size",
          "occupancy": OccupancyMetric.compute() (camera_mask and all_voxels: miou, miou_static, miou_dynamic,
                       geometry_iou, iou_per_class, voxels, confusion),
          "rayiou": RayIoUMetric.compute() (rayiou, rayiou@1, rayiou@2, rayiou@4, iou_per_class, ...) or None,
          "fog": FogMetric.compute() (predicted vs labelled occupied voxels in mask_camera, split by whether a
-                training ray of t ∈ [-fog_horizon, fog_horizon] crosses them) or None (fog_horizon None, or
+                training ray of t ∈ [-fog_horizon, fog_horizon] crosses them) or None (``fog`` off, or
                 the split has no lidarseg to build rays from),
          "timing": {"seconds", "load_seconds", "predict_seconds", "metric_seconds", "samples_per_second"}}
 
     Ray origins per sample: the LiDAR origins of its scene's keyframes moved into its current ego frame
     (``scene_ray_origins`` with the index's LiDAR sensor2ego and ego2global at the LiDAR timestamps).
-    ``save_predictions``: a folder that receives ``<sample token>.npz`` with ``occupancy`` uint8 [200, 200, 16]
-    and ``density`` float32 [200, 200, 16]. Loading the next batch and writing predictions run on background
+    ``config.save_predictions``: a folder that receives ``<sample token>.npz`` with ``occupancy`` uint8
+    [200, 200, 16] and ``density`` float32 [200, 200, 16]. Loading the next batch and writing predictions run on background
     threads while the model and the metrics work. Like ``train()``, it keeps freed memory in the process for reuse
-    (:func:`occflownet.heap.reuse_freed_memory`: the torch model's large tensors stay mapped between samples)."""
+    (:func:`occflownet.heap.reuse_freed_memory`: the torch model's large tensors stay mapped between samples).
+    ``changes``: fields of :class:`EvalConfig` that replace those of ``config`` (``evaluate(s, p, rayiou=False)``);
+    the fields that choose samples, viewers and threads are read by the caller."""
     from tqdm import tqdm
 
+    config = replace(config, **changes)
+    batch_size = config.batch_size
     reuse_freed_memory()
-    metrics = _Metrics(samples, rayiou, fog_horizon)
+    metrics = _Metrics(samples, config.rayiou, config.fog_horizon if config.fog else None)
     timing = {"load": 0.0, "predict": 0.0, "metric": 0.0}
     t_start = time.perf_counter()
-    with _PredictionWriter(save_predictions) as writer, \
+    with _PredictionWriter(config.save_predictions) as writer, \
             tqdm(total=len(samples), desc="eval", unit="sample", file=sys.stderr, disable=not progress) as bar:
         for position, token, occupancy, density, gt in predictions(samples, predict, batch_size, timing):
             writer.save(token, occupancy, density)
