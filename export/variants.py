@@ -25,6 +25,7 @@ import numpy as np
 import onnx
 
 from occflownet.choices import INT8_RANGES
+from occflownet.export.config import ExportConfig
 from occflownet.export.onnx_export import ExportError, agreement, validate_proto
 from occflownet.export.parity import default_parity_samples, inference_frame_sample
 from occflownet.model import ModelConfig
@@ -183,8 +184,8 @@ def float_in_int8(proto: onnx.ModelProto) -> list[str]:
 
 
 def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int = 6,
-               frame: str | Path | None = None, int8_range: str = "reduced", keep_float: list[str] | None = None,
-               op_types: list[str] | None = None) -> Path:
+               frame: str | Path | None = None, int8_range: str = ExportConfig.int8_range,
+               keep_float: list[str] | None = None, op_types: list[str] | None = None) -> Path:
     """The int8 QDQ variant of ``src`` (see the module docstring), calibrated on ``frame`` (a real frame folder)
     when given, else on synthetic samples; weights in ``int8_range`` (:data:`INT8_OP_TYPES` note). ``keep_float``
     (node names) and ``op_types`` replace :func:`float_in_int8` and :data:`INT8_OP_TYPES` (for measuring other
@@ -216,7 +217,7 @@ def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int 
 
 
 def write_variants(fp32_path: str | Path, cfg: ModelConfig, fp16: bool = False, int8: bool = False,
-                   frame: str | Path | None = None, int8_range: str = "reduced") -> list[str]:
+                   frame: str | Path | None = None, int8_range: str = ExportConfig.int8_range) -> list[str]:
     """Write the requested variants beside ``fp32_path``; returns one report line per variant."""
     fp32_path = Path(fp32_path)
     sample = inference_frame_sample(frame, cfg) if frame else default_parity_samples(cfg, [], seed=5)[0]
