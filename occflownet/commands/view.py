@@ -4,19 +4,21 @@ beside it with ``--gt`` (its ``mask_camera`` can hide what eval does not score);
 with ``--images``. The file needs no network: its script and data are inside it (:mod:`occflownet.viewer`).
 
 Grids: ``predict``'s .npz, ``eval --save-predictions`` .npz files, the server's or the C++ program's .npy, raw
-octet-stream bytes, or an Occ3D ``labels.npz`` (then shown as the ground truth)."""
+octet-stream bytes, or an Occ3D ``labels.npz`` (then shown as the ground truth).
+
+The options are the grid, the fields of :class:`occflownet.viewer.ViewConfig` (``occflownet/options.py``) and
+``--out``."""
 import sys
+
+from occflownet.options import add_options, config_kwargs
+from occflownet.viewer import ViewConfig
 
 HELP = "write an interactive 3D viewer (one HTML file) of a grid, optionally beside its ground truth"
 
 
 def add_arguments(p):
     p.add_argument("grid", help="grid file: .npz (predict, eval --save-predictions, Occ3D labels), .npy, raw bytes")
-    p.add_argument("--gt", default=None, metavar="LABELS", help="Occ3D labels.npz shown beside the grid")
-    p.add_argument("--images", default=None, metavar="DIR", help="folder with CAM_FRONT.jpg ... for thumbnails")
-    p.add_argument("--calib", default=None, metavar="JSON",
-                   help="calibration JSON for the camera frusta (default: the default rig)")
-    p.add_argument("--title", default=None, help="page title (default: the grid's file name)")
+    add_options(p, ViewConfig)
     p.add_argument("--out", required=True, help="output .html")
 
 
@@ -26,14 +28,15 @@ def run(args) -> int:
     from occflownet import contract, viewer
     from occflownet.predict import find_camera_images
 
+    cfg = ViewConfig(**config_kwargs(args, ViewConfig))
     try:
         grids = [viewer.read_grid(args.grid)]
-        if args.gt:
-            grids.insert(0, viewer.read_grid(args.gt, "ground truth"))
-        calib = contract.load_calibration(args.calib) if args.calib else None
-        images = {cam: p.read_bytes() for cam, p in find_camera_images(args.images).items()} if args.images else None
-        title = args.title or Path(args.grid).name
-        files = [args.gt, args.grid] if args.gt else [args.grid]               # in the order of `grids`
+        if cfg.gt:
+            grids.insert(0, viewer.read_grid(cfg.gt, "ground truth"))
+        calib = contract.load_calibration(cfg.calib) if cfg.calib else None
+        images = {cam: p.read_bytes() for cam, p in find_camera_images(cfg.images).items()} if cfg.images else None
+        title = cfg.title or Path(args.grid).name
+        files = [cfg.gt, args.grid] if cfg.gt else [args.grid]                 # in the order of `grids`
         subtitle = " · ".join(f"{g.name}: {Path(f).name}" for g, f in zip(grids, files))
         out = viewer.write_viewer(args.out, grids, calib, images, title=title, subtitle=subtitle)
     except (FileNotFoundError, ValueError, OSError) as exc:

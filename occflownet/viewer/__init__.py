@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from occflownet.files import atomic_path
+from occflownet.options import option
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, FREE, GRID
 
 ASSETS = Path(__file__).resolve().with_name("assets")
@@ -32,6 +33,17 @@ PAGE = ASSETS / "page.html"
 THUMBNAIL_WIDTH = 480          # camera images are shrunk to this width (JPEG) inside a viewer file
 # A viewer file fetches nothing: scripts, styles and images are inline, every other kind of request is refused.
 FILE_POLICY = "default-src 'none'; script-src 'unsafe-inline'; style-src 'unsafe-inline'; img-src data:"
+
+
+@dataclass(frozen=True)
+class ViewConfig:
+    """What a viewer file shows besides its grid (`occflownet view` derives its options from these fields,
+    ``occflownet/options.py``): the ground truth beside it, the camera thumbnails and frusta, the title."""
+
+    gt: str | None = option(None, "Occ3D labels.npz shown beside the grid")
+    images: str | None = option(None, "folder with CAM_FRONT.jpg ... for thumbnails")
+    calib: str | None = option(None, "calibration JSON for the camera frusta (default: the default rig)")
+    title: str | None = option(None, "page title (default: the grid's file name)")
 
 
 @dataclass(frozen=True)
