@@ -6,10 +6,10 @@ import sys
 
 from occflownet import __version__
 from occflownet.commands import eval as eval_cmd
-from occflownet.commands import export, labels, predict, prepare, quickstart, serve, synth, train, view
+from occflownet.commands import export, labels, predict, prepare, quickstart, recipes, serve, synth, train, view
 
 VERBS = {
-    "synth": synth, "labels": labels, "prepare": prepare, "train": train, "eval": eval_cmd, "export": export,
+    "synth": synth, "labels": labels, "prepare": prepare, "recipes": recipes, "train": train, "eval": eval_cmd, "export": export,
     "predict": predict, "serve": serve, "quickstart": quickstart, "view": view,
 }
 

@@ -19,12 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.choices import PRESET_NAMES, SUPERVISION_MODES, supervision_parts
+from occflownet.choices import PRESET_NAMES
 from occflownet.contract import calibration_json
 from occflownet.data.index import load_index
 from occflownet.files import atomic_path
-from occflownet.options import config_argv, option
-from occflownet.train.recipe import RENDERING_RECIPE, TrainConfig
+from occflownet.options import check_fields, config_argv, option
+from occflownet.train.recipe import TrainConfig
+from occflownet.train.recipes import RECIPE_NAMES, REFERENCE_GFLOPS, recipe
 
 
 @dataclass(frozen=True)
@@ -34,47 +35,34 @@ class QuickstartConfig:
 
     out: str = option("quickstart", "folder for the world, the run, the model and the pictures")
     scenes: int = option(6, "synthetic scenes (the last one is the val split); more, shorter scenes generalise "
-                                 "better than few long ones at the same cost (docs/training.md)")
-    frames: int = option(8, "keyframes per scene")
-    preset: str = option("tiny", "model preset; small (tiny with a denser lifting) generalised better at equal "
-                                 "steps with 3D labels but takes 2.1x as long a step, so it needs a longer "
-                                 "--train-minutes (docs/training.md)", choices=PRESET_NAMES)
+                                 "better than few long ones at the same cost (docs/training.md)", minimum=2)
+    frames: int = option(8, "keyframes per scene", minimum=1)
+    preset: str = option("tiny", "model preset; small (tiny with a denser lifting) takes 2.1x as long a step, so it "
+                                 "needs a longer --train-minutes (docs/training.md)", choices=PRESET_NAMES)
+    recipe: str = option("quickstart", "training recipe (`occflownet recipes`): quickstart = 3D labels inside the "
+                                       "camera mask and rendered LiDAR rays of the current frame; quickstart-3d = "
+                                       "the labels alone, the cheapest step", choices=RECIPE_NAMES)
     seed: int = option(0, "seed of the world and of the training run")
-    train_minutes: float = option(7.0, "training time budget in minutes")
-    max_steps: int = option(3000, "step cap (with --supervision 3d 6-7 min on the 2-core reference CPU; a step "
-                                     "that renders rays costs about 3x as much, so the time budget stops it first)")
-    supervision: str = option("2d+3d", "2d+3d: 3D labels inside the camera mask and rendered LiDAR rays of the "
-                                       "current frame with the recommended rendering options, the recipe that "
-                                       "found the cars in the quickstart's minutes; 3d: the labels alone (better "
-                                       "geometry, about a third of the car IoU); 2d: the rays alone "
-                                       "(docs/training.md)",
-                              choices=SUPERVISION_MODES)
-    voxel_mask: bool = option(True, "3D voxel losses only inside mask_camera (train --voxel-mask; the quickest "
-                                    "recipe measured, docs/training.md)")
+    train_minutes: float = option(7.0, "training time budget in minutes", minimum=0)
+    max_steps: int = option(3000, "step cap (the time budget stops a run first on the 2-core reference CPU)",
+                            minimum=1)
 
-    @property
-    def renders_rays(self) -> bool:
-        """Whether the run renders LiDAR rays (2d, 2d+3d): it then trains with :data:`QUICK_RENDERING` and its steps
-        cost ``StageCosts.train_per_rendering_step``."""
-        return "2d" in supervision_parts(self.supervision)
+    def __post_init__(self):
+        check_fields(self)
 
 
 @dataclass(frozen=True)
 class StageCosts:
-    """What each stage of the quickstart costs per unit of work on the reference machine, and that machine's float32
-    matmul rate: the basis of the estimate printed at the start (:func:`estimate_minutes`). Measured on the 2-core
-    development machine (AMD EPYC, AVX-512 with bf16) by ``python benchmarks/bench_quickstart.py``, which runs the
-    quickstart and divides each stage's seconds by its units (docs/training.md)."""
+    """What each stage of the quickstart costs per unit of work on the reference machine (float32 matmul rate
+    :data:`~occflownet.train.recipes.REFERENCE_GFLOPS`; a training step costs its recipe's ``step_seconds``): the
+    basis of the estimate printed at the start (:func:`estimate_minutes`). Measured on the 2-core development
+    machine (AMD EPYC, AVX-512 with bf16) by ``python benchmarks/perf/bench_quickstart.py``, which runs the
+    quickstart and divides each stage's seconds by its units (docs/results.md)."""
 
-    # One set, measured on one day (2026-12-05, after the heap setting and FineRows): three quickstarts (seeds 0, 1,
-    # 2) and a --supervision 3d run (seed 0), means.
-    matmul_gflops: float = 363.0           # torch float32 matmul 1024³, 2 threads (:func:`matmul_gflops`)
     synth_per_keyframe: float = 1.16       # seconds: render, LiDAR, sweeps, labels of one keyframe
     prepare_per_keyframe: float = 0.013
     train_setup: float = 5.0               # seconds before the first step (class counts, spawned data workers,
                                            # numba compilation, first batches)
-    train_per_step: float = 0.129          # tiny, 3D labels in mask_camera (--supervision 3d), float32
-    train_per_rendering_step: float = 0.357  # tiny, 2d+3d with the rays of QUICK_RENDERING (the default), float32
     eval_per_keyframe: float = 0.19
     export: float = 14.1                   # export with its parity checks, the picture and the viewer file
 
@@ -95,15 +83,16 @@ def matmul_gflops(size: int = 1024, seconds: float = 0.3) -> float:
 
 def estimate_minutes(cfg: QuickstartConfig, gflops: float, costs: StageCosts = StageCosts()) -> dict[str, float]:
     """Minutes per stage on a machine of ``gflops`` (:func:`matmul_gflops`): the reference costs scaled by the matmul
-    rates; training is the smaller of its step cap and its time budget. A rough guide (±30 % on machines like the
-    reference, more on others), printed so that a user knows what to expect; nothing depends on it."""
-    scale = costs.matmul_gflops / max(gflops, 1e-3)
+    rates; training is the smaller of its step cap and its time budget (the budget when the recipe's step was not
+    measured). A rough guide (±30 % on machines like the reference, more on others), printed so that a user knows
+    what to expect; nothing depends on it."""
+    scale = REFERENCE_GFLOPS / max(gflops, 1e-3)
     keyframes = cfg.scenes * cfg.frames
     val = cfg.frames                                          # the last scene is the val split
-    per_step = costs.train_per_rendering_step if cfg.renders_rays else costs.train_per_step
-    train = min(cfg.train_minutes * 60, costs.train_setup + cfg.max_steps * per_step * scale)
+    per_step = recipe(cfg.recipe).step_seconds
+    steps = float("inf") if per_step is None else costs.train_setup + cfg.max_steps * per_step * scale
     seconds = {"synth": keyframes * costs.synth_per_keyframe * scale,
-               "prepare": keyframes * costs.prepare_per_keyframe * scale, "train": train,
+               "prepare": keyframes * costs.prepare_per_keyframe * scale, "train": min(cfg.train_minutes * 60, steps),
                "eval": val * costs.eval_per_keyframe * scale, "export": costs.export * scale}
     return {k: v / 60 for k, v in seconds.items()}
 
@@ -170,7 +159,7 @@ def _estimate_line(cfg: QuickstartConfig) -> str:
     minutes = estimate_minutes(cfg, gflops)
     parts = ", ".join(f"{name} ~{m:.1f}" for name, m in minutes.items())
     return (f"quickstart: on this machine (float32 matmul {gflops:.0f} GFLOP/s, the reference machine "
-            f"{StageCosts().matmul_gflops:.0f}) expect about {sum(minutes.values()):.0f} min: {parts} min "
+            f"{REFERENCE_GFLOPS:.0f}) expect about {sum(minutes.values()):.0f} min: {parts} min "
             f"(training stops at {cfg.max_steps} steps or after {cfg.train_minutes:g} min)")
 
 
@@ -196,26 +185,19 @@ def _prepare(cfg: QuickstartConfig, paths: QuickstartPaths, announce):
     return prepare(paths.world, progress=True)
 
 
-# How the quickstart renders rays in its minutes: the current frame only (O = 0; the temporal rows of the paper's
-# ladder fall behind at short budgets, docs/ablation.md ninth round), so no dynamic filter, disocclusion or flow,
-# and uniform loss weights (the ladder's row 3), with the recommended rendering options (RENDERING_RECIPE).
-QUICK_RENDERING: dict[str, object] = {"horizon": 0, "flow": False, "dynamic_filter": False, "disocclusion": False,
-                                      "loss_weighting": False, **RENDERING_RECIPE}
-
-
 def train_config(cfg: QuickstartConfig, world: Path, run: Path, version: str) -> TrainConfig:
-    """The run the quickstart trains: ``cfg.preset`` on ``world``'s train split into ``run``, rendering rays as
-    :data:`QUICK_RENDERING` says when the supervision renders (2d, 2d+3d), for ``cfg``'s time and step budget."""
-    rendering = QUICK_RENDERING if cfg.renders_rays else {}
-    return TrainConfig(preset=cfg.preset, dataroot=str(world), out=str(run), version=version, split="train",
-                       supervision=cfg.supervision, time_limit_s=cfg.train_minutes * 60,
-                       max_steps=cfg.max_steps, seed=cfg.seed, voxel_mask=cfg.voxel_mask, **rendering)
+    """The run the quickstart trains: recipe ``cfg.recipe`` with ``cfg.preset`` on ``world``'s train split into
+    ``run``, for ``cfg``'s time and step budget."""
+    return TrainConfig.from_recipe(cfg.recipe, preset=cfg.preset, dataroot=str(world), out=str(run), version=version,
+                                   split="train", time_limit_s=cfg.train_minutes * 60, max_steps=cfg.max_steps,
+                                   seed=cfg.seed)
 
 
 def train_argv(train_cfg: TrainConfig) -> list[str]:
     """The ``occflownet train`` arguments that run ``train_cfg`` (and resume it): parsed again, the same config."""
-    baseline = TrainConfig(preset=train_cfg.preset)
-    return ["train", *config_argv(train_cfg, baseline, always=("preset", "dataroot", "out", "version")), "--resume"]
+    baseline = TrainConfig.from_recipe(train_cfg.recipe, preset=train_cfg.preset)
+    return ["train", *config_argv(train_cfg, baseline, always=("recipe", "preset", "dataroot", "out", "version")),
+            "--resume"]
 
 
 def _train(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> Path:

@@ -25,7 +25,7 @@ from occflownet.data.rays import RayBuilder, RayConfig, sample_rays
 from occflownet.geometry import invert, transform_points
 from occflownet.occ3d import GRID
 from occflownet.train.augment import BevFlip, ImageAug
-from occflownet.train.losses import voxel_targets
+from occflownet.train.losses import loss_terms, step_data, voxel_targets
 from occflownet.train.recipe import TrainConfig
 
 MAX_DEPTH_POINTS = 40000  # LiDAR points per sample kept for the LSS depth loss
@@ -56,6 +56,7 @@ class TrainingSamples(Dataset):
         self.positions = np.asarray(positions, dtype=np.int64)
         self.cfg = cfg
         self.flow_records = flow_records or {}
+        self.data = step_data(loss_terms(cfg))   # what the run's loss terms read (losses.INPUT_DATA)
         # With occupancy flow, dynamic rays of temporal frames are kept and rendered through the warped volume.
         ray_cfg = RayConfig(horizon=cfg.horizon, dynamic_filter=cfg.dynamic_filter and not cfg.flow,
                             free_space=FreeSpaceConfig() if cfg.free_space else None,
@@ -78,7 +79,7 @@ class TrainingSamples(Dataset):
             "intrinsics": torch.from_numpy(sample.intrinsics.astype(np.float32)),          # [6, 3, 3]
             "cam2ego": torch.from_numpy(sample.cam2current_ego().astype(np.float32)),      # [6, 4, 4]
         }
-        if self.cfg.uses_2d:
+        if "rays" in self.data:
             rays = sample_rays(self.rays.rays(position), self.cfg.rays_per_step, rng, self.cfg.ray_sampling)
             free = self._free_rays(position, rng)
             offsets = rays.time_offsets if free is None else np.concatenate([rays.time_offsets, free.time_offsets])
@@ -101,9 +102,9 @@ class TrainingSamples(Dataset):
                     raise KeyError(f"no flow record for sample {sample.token}: the flow file is older than the "
                                    f"index; re-run `occflownet prepare --dataroot {self.dataroot}`")
                 item["flow"] = flow_moves(record, frames)
-        if self.cfg.depth_loss:
+        if "depth_points" in self.data:
             item["depth_points"] = torch.from_numpy(self._depth_points(position, rng))
-        if self.cfg.uses_3d:
+        if "voxel_labels" in self.data:
             occ = load_occupancy(self.dataroot, sample.occupancy_path)
             item["occ_semantics"] = torch.from_numpy(occ.semantics)                       # uint8 [200, 200, 16]
             item["occ_mask"] = torch.from_numpy(occ.mask_camera.astype(bool))
@@ -112,7 +113,7 @@ class TrainingSamples(Dataset):
         if self.cfg.image_aug:                      # after the flip, for the same reason
             images = item["images"]
             item = ImageAug.draw(rng, images.shape[1], images.shape[2], images.shape[0]).apply(item)
-        if self.cfg.uses_3d:
+        if "voxel_labels" in self.data:
             item.update(voxel_targets(item["occ_semantics"], item["occ_mask"] if self.cfg.voxel_mask else None))
         return item
 
@@ -127,7 +128,7 @@ class TrainingSamples(Dataset):
 
     def _free_rays(self, position: int, rng: np.random.Generator):
         """``free_rays_per_step`` free rays of the keyframe and its neighbours, or None (off / none found)."""
-        if not self.cfg.uses_free_rays:
+        if "free_rays" not in self.data:
             return None
         free = self.rays.free_rays(position)
         if len(free) == 0:

@@ -22,13 +22,14 @@ from torch.utils.data import DataLoader
 
 from occflownet.choices import PRECISIONS
 from occflownet.contract import calibration_json
-from occflownet.data.class_weights import count_voxels, voxel_class_weights
 from occflownet.data.index import load_index
+from occflownet.files import atomic_path
 from occflownet.heap import reuse_freed_memory
 from occflownet.model import get_preset
 from occflownet.model.presets import ModelConfig
 from occflownet.train import distributed as ddp
 from occflownet.train.dataset import TrainingSamples, collate
+from occflownet.train.losses import loss_terms, step_data
 from occflownet.train.recipe import TrainConfig
 from occflownet.train.run_log import RunLogger
 from occflownet.train.sampler import StepBatchSampler
@@ -51,8 +52,7 @@ def train(cfg: TrainConfig, resume: bool = False, progress: bool = True) -> Path
         ddp.barrier(info)
         ddp.shutdown(info)
         return ckpt_path
-    losses = LossComputer(cfg, state.model_cfg, _class_weights(cfg, index, device),
-                          voxel_weights=_voxel_weights(cfg, index, positions))
+    losses = LossComputer(cfg, state.model_cfg, _class_weights(cfg, index, device))
     loader = _data_loader(cfg, index, positions, flow_records, state.step, info)
     _write_train_config(cfg, info)
     monitor = _Monitor(cfg, state.step, info, progress)
@@ -118,17 +118,19 @@ def _training_data(cfg: TrainConfig):
 
 
 def _check_data(cfg: TrainConfig, index, positions) -> None:
-    """Fail before training starts when the data cannot serve the requested supervision."""
+    """Fail before training starts when the data cannot serve what the run's loss terms read
+    (``losses.INPUT_DATA``)."""
     if len(positions) == 0:
         raise TrainingError(f"split '{cfg.split}' of {cfg.dataroot} has no samples")
-    if cfg.uses_3d:
+    data = step_data(loss_terms(cfg))
+    if "voxel_labels" in data:
         missing = [index.tokens[p] for p in positions if index.arrays["occupancy_path"][p] in (b"", "")]
         if missing:
             raise TrainingError(
-                f"--supervision {cfg.supervision} needs Occ3D labels, but {len(missing)} of {len(positions)} "
-                f"samples have none under {Path(cfg.dataroot) / 'gts'} (first: {missing[0]}); "
-                "use --supervision 2d or add the gts/ folder")
-    if cfg.uses_2d and cfg.loss_weighting and index.class_stats is None:
+                f"recipe {cfg.recipe!r} (--supervision {cfg.supervision}) needs Occ3D labels, but {len(missing)} of "
+                f"{len(positions)} samples have none under {Path(cfg.dataroot) / 'gts'} (first: {missing[0]}); "
+                "choose a recipe without 3D labels (`occflownet recipes`) or add the gts/ folder")
+    if "class_counts" in data and index.class_stats is None:
         raise TrainingError(f"{cfg.dataroot}: the index has no class counts; run `occflownet prepare` again")
 
 
@@ -178,14 +180,6 @@ def _class_weights(cfg: TrainConfig, index, device) -> torch.Tensor | None:
     return torch.as_tensor(np.asarray(index.class_stats.weights), dtype=torch.float32, device=device)
 
 
-def _voxel_weights(cfg: TrainConfig, index, positions) -> torch.Tensor | None:
-    """float32 [18] weights of the 3D density BCE (``--voxel-weighting``) from the training split's labels, or None."""
-    if cfg.voxel_weighting == "none" or not cfg.uses_3d:
-        return None
-    counts = count_voxels(cfg.dataroot, index, positions, masked=cfg.voxel_mask)
-    return torch.from_numpy(voxel_class_weights(counts))
-
-
 def _distributed(model: torch.nn.Module, cfg: TrainConfig, info, device) -> torch.nn.Module:
     """``model`` wrapped in DDP under torchrun, else ``model`` itself (what the forward pass calls)."""
     if not info.enabled:
@@ -211,9 +205,8 @@ def _data_loader(cfg: TrainConfig, index, positions, flow_records, start_step: i
 def _write_train_config(cfg: TrainConfig, info) -> None:
     """``<out>/train_config.json``: the resolved TrainConfig of this run (rank 0)."""
     if info.is_main:
-        out = Path(cfg.out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "train_config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+        with atomic_path(Path(cfg.out) / "train_config.json") as tmp:
+            tmp.write_text(json.dumps(cfg.to_dict(), indent=2) + "\n")
 
 
 # --- the steps --------------------------------------------------------------------------------------------------------
@@ -233,7 +226,7 @@ def _run_steps(state: TrainingState, net, losses: LossComputer, loader: Iterable
     for batch in loader:
         generator = torch.Generator(device=device).manual_seed(cfg.seed * 1_000_003 + state.step * 101 + info.rank)
         terms, grad_norm = train_step(state, net, losses, batch, device, generator, amp_dtype)
-        monitor.after_step(state.step, terms, grad_norm, state.scheduler.get_last_lr()[0], step_work(batch, cfg))
+        monitor.after_step(state.step, terms, grad_norm, state.scheduler.get_last_lr()[0], step_work(batch))
         out_of_time = _out_of_time(cfg, t_start, info, device)
         if info.is_main and (_checkpoint_due(cfg, state.step) or out_of_time):
             state.save(ckpt_path)
@@ -268,14 +261,15 @@ def train_step(state: TrainingState, net, losses: LossComputer, batch: dict, dev
     return terms, grad_norm
 
 
-def step_work(batch: dict, cfg: TrainConfig) -> dict[str, int]:
-    """What one step of this process supervises, by the run's supervision: {"rays": LiDAR rays rendered} with 2D
-    supervision, {"voxels": labelled voxels in the 3D loss (inside mask_camera with ``voxel_mask``)} with 3D."""
+def step_work(batch: dict) -> dict[str, int]:
+    """What one step of this process supervises, by what its batch carries: {"rays": LiDAR rays rendered} when it
+    carries rays, {"voxels": labelled voxels in the 3D loss (inside mask_camera with ``voxel_mask``)} when it
+    carries voxel labels."""
     work = {}
-    if cfg.uses_2d:
+    if "ray_depths" in batch:
         work["rays"] = int(batch["ray_depths"].numel())
-    if cfg.uses_3d:
-        work["voxels"] = int(batch["occ_mask"].sum() if cfg.voxel_mask else batch["occ_semantics"].numel())
+    if "voxel_occupied" in batch:
+        work["voxels"] = int(batch["voxel_occupied"].numel())
     return work
 
 

@@ -14,9 +14,7 @@ and ``occupied_logits``: σ and the logits at the supervised voxels), renderings
 - "render_semantics" (2D): cross-entropy of the rendered logit mixture per ray × ω(label), weight 1.0; both are
   the mean over rays of the weighted per-ray terms, as mmdet's ``weight_reduce_loss`` does in the official code.
   ω are the per-class weights from the data index (``occflownet.data.class_weights``: log(ΣN / N_c) normalised to
-  mean 1), used as given; None = all ones. ``render_semantics="normalized"`` (beyond the paper) takes the CE of the
-  mixture divided by its weight sum: the official CE on the raw mixture Σ w_i s_i also falls when the ray's
-  opacity grows anywhere along it, which rewards density in front of the surface;
+  mean 1), used as given (``loss_weighting``); without, all ones;
 - "point_semantics" (``point_semantics_weight`` > 0, beyond the paper): mean over the rays whose LiDAR point lies
   in the grid of ω(label)·CE(logits of the voxel holding the point, in the ray's frame volume; label), weight
   ``point_semantics_weight``: the rendered mixture spreads a ray that grazes the ground over metres of voxels, so
@@ -48,6 +46,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from occflownet.choices import supervision_parts
 from occflownet.occ3d import FREE, NUM_CLASSES
 from occflownet.train.recipe import TrainConfig
 
@@ -76,32 +75,49 @@ class LossTerm:
         return 1.0 if self.ramp_steps <= 0 or step is None else min(1.0, step / self.ramp_steps)
 
 
+# What a step must load and check for each input a term names: the one table from which the data pipeline
+# (``dataset.TrainingSamples``), the data checks before training (``loop``) and the step's work counts follow.
+# "rays": the LiDAR rays of frames t in [-O, O] (and, with flow, the boxes' moves); "free_rays": LiDAR beams without
+# a return and camera rays beyond the grid; "depth_points": the keyframe's LiDAR points; "voxel_labels": the Occ3D
+# labels (``gts/``); "class_counts": prepare's per-class ray counts (the weights ω). Inputs not listed come from the
+# model or are constants.
+INPUT_DATA: dict[str, tuple[str, ...]] = {
+    "rendered": ("rays",), "ray_depths": ("rays",), "ray_labels": ("rays",), "point_logits": ("rays",),
+    "point_labels": ("rays",), "point_sigma": ("rays",), "before_opacity": ("rays",),
+    "free_opacity": ("rays", "free_rays"),
+    "voxel_sigma": ("voxel_labels",), "voxel_occupied": ("voxel_labels",), "occupied_logits": ("voxel_labels",),
+    "occupied_labels": ("voxel_labels",),
+    "depth_points": ("depth_points",), "class_weights": ("class_counts",),
+}
+
+
 def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
-    """The terms of a run (see the module docstring), in the order the log lists them and the loss sums them."""
-    rays = ("rendered", "ray_depths", "ray_labels", "class_weights")
+    """The terms of a run (see the module docstring), in the order the log lists them and the loss sums them. The
+    only place a run's supervision and its loss options are read: everything a step loads follows from the terms
+    (:func:`step_data`)."""
+    weights = ("class_weights",) if cfg.loss_weighting else ()
+    rays = ("rendered", "ray_depths", "ray_labels", *weights)
+    two_d, three_d = (part in supervision_parts(cfg.supervision) for part in ("2d", "3d"))
     terms = []
-    if cfg.uses_2d:
-        semantics = normalized_semantics_loss if cfg.render_semantics == "normalized" else render_semantics_loss
+    if two_d:
         terms += [LossTerm("render_depth", cfg.render_depth_weight if cfg.depth_loss else 0.0, rays,
                            render_depth_loss),
-                  LossTerm("render_semantics", SEMANTIC_WEIGHT, ("rendered", "ray_labels", "class_weights"),
-                           semantics)]
-    if cfg.uses_2d and cfg.point_semantics_weight > 0:
+                  LossTerm("render_semantics", SEMANTIC_WEIGHT, ("rendered", "ray_labels", *weights),
+                           render_semantics_loss)]
+    if cfg.point_semantics_weight > 0:
         terms.append(LossTerm("point_semantics", cfg.point_semantics_weight,
-                              ("point_logits", "point_labels", "class_weights"), point_semantics_loss))
-    if cfg.uses_2d and cfg.point_density_weight > 0:
+                              ("point_logits", "point_labels", *weights), point_semantics_loss))
+    if cfg.point_density_weight > 0:
         terms.append(LossTerm("point_density", cfg.point_density_weight, ("point_sigma",), point_density_loss))
-    if cfg.uses_3d:
-        weighted = ("voxel_labels", "voxel_weights") if cfg.voxel_weighting != "none" else ()
-        terms += [LossTerm("voxel_density", VOXEL_WEIGHT, ("voxel_sigma", "voxel_occupied", *weighted),
-                           voxel_density_loss),
+    if three_d:
+        terms += [LossTerm("voxel_density", VOXEL_WEIGHT, ("voxel_sigma", "voxel_occupied"), voxel_density_loss),
                   LossTerm("voxel_semantics", VOXEL_WEIGHT, ("occupied_logits", "occupied_labels"),
                            voxel_semantics_loss)]
     if cfg.depth_loss:
         terms.append(LossTerm("lidar_depth", cfg.lidar_depth_weight,
                               ("depth_prob", "feature_intrinsics", "cam2ego", "depth_points", "depth_bins"),
                               lidar_depth_loss))
-    if cfg.uses_free_rays and cfg.free_space_weight > 0:
+    if (cfg.free_space or cfg.free_beyond_grid) and cfg.free_space_weight > 0:
         terms.append(LossTerm("free_space", cfg.free_space_weight, ("free_opacity",), free_space_loss,
                               cfg.free_ramp_steps))
     if cfg.free_before_point and cfg.free_space_weight > 0:
@@ -110,6 +126,12 @@ def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
     if cfg.free_prior_weight > 0:
         terms.append(LossTerm("free_prior", cfg.free_prior_weight, ("density",), free_prior_loss))
     return tuple(terms)
+
+
+def step_data(terms: Sequence[LossTerm]) -> frozenset[str]:
+    """The data a step of ``terms`` loads (the kinds of :data:`INPUT_DATA`: "rays", "free_rays", "depth_points",
+    "voxel_labels", "class_counts")."""
+    return frozenset(kind for term in terms for name in term.needs for kind in INPUT_DATA.get(name, ()))
 
 
 # --- the rendered rays --------------------------------------------------------------------------------------------
@@ -168,15 +190,6 @@ def render_semantics_loss(rendered, labels_gt: torch.Tensor,
     return _semantics_ce(rendered.semantics, _ray_labels(rendered, labels_gt), class_weights)
 
 
-def normalized_semantics_loss(rendered, labels_gt: torch.Tensor,
-                              class_weights: torch.Tensor | None = None) -> torch.Tensor:
-    """As :func:`render_semantics_loss` on the mixture ÷ the ray's weight sum (``rendered.weight_sum`` [R],
-    clamped at 1e-4): the logits the ray sees, whatever share of its light stops."""
-    labels = _ray_labels(rendered, labels_gt)
-    return _semantics_ce(rendered.semantics / rendered.weight_sum.clamp(min=1e-4).unsqueeze(-1), labels,
-                         class_weights)
-
-
 def point_semantics_loss(point_logits: torch.Tensor, point_labels: torch.Tensor,
                          class_weights: torch.Tensor | None = None) -> torch.Tensor:
     """Mean over points of ω(label)·CE(point_logits [P, 17], point_labels [P] 0..16), unweighted: the logits of the
@@ -212,8 +225,8 @@ def free_space_loss(opacity: torch.Tensor) -> torch.Tensor:
 
 def free_prior_loss(density: torch.Tensor) -> torch.Tensor:
     """Unweighted free prior: mean over all voxels of -log(1 - σ), density [B, X, Y, Z] in [0, 1] (clamped at
-    1 - 1e-4). With ``sigma_is="opacity"`` it is each voxel's optical depth, so it charges every voxel by how much
-    light it would stop; the rays' terms outweigh it where rays go. The same -log(1 - x) as ``free_space_loss``,
+    1 - 1e-4): it charges every voxel by how much light it would stop; the rays' terms outweigh it where rays go.
+    The same -log(1 - x) as ``free_space_loss``,
     over voxels instead of beams."""
     with torch.autocast(device_type=density.device.type, enabled=False):
         return free_space_loss(density.float().reshape(-1))
@@ -253,23 +266,15 @@ def voxel_targets(semantics_gt: torch.Tensor, mask: torch.Tensor | None = None) 
     return out
 
 
-def voxel_density_loss(sigma: torch.Tensor, occupied: torch.Tensor, labels: torch.Tensor | None = None,
-                       voxel_weights: torch.Tensor | None = None) -> torch.Tensor:
+def voxel_density_loss(sigma: torch.Tensor, occupied: torch.Tensor) -> torch.Tensor:
     """BCE(σ, occupied), mean over the supervised voxels: sigma [K] in [0, 1] (the density at the rows of
-    :func:`voxel_targets`), occupied float [K] (its "voxel_occupied"); with voxel_weights [18] (None: unweighted, the
-    official) each voxel's BCE is multiplied by the weight of its label, labels [K] (17 = free; the loss computer
-    reads them from the labels at the rows of :func:`voxel_targets`) before the mean. K = 0 gives 0 (graph kept)."""
+    :func:`voxel_targets`), occupied float [K] (its "voxel_occupied"). K = 0 gives 0 (graph kept)."""
     if sigma.shape != occupied.shape or sigma.dim() != 1:
         raise ValueError(f"sigma and occupied must both be [K], got {tuple(sigma.shape)} and {tuple(occupied.shape)}")
     if not sigma.numel():
         return sigma.sum() * 0
     with torch.autocast(device_type=sigma.device.type, enabled=False):
-        if voxel_weights is None:
-            return F.binary_cross_entropy(sigma.float(), occupied.float())
-        if labels is None or labels.shape != sigma.shape or voxel_weights.shape != (NUM_CLASSES + 1,):
-            raise ValueError(f"weighting needs labels [K] and voxel_weights [{NUM_CLASSES + 1}]")
-        weight = voxel_weights.to(sigma.device, torch.float32)[labels.long()]
-        return F.binary_cross_entropy(sigma.float(), occupied.float(), weight=weight)
+        return F.binary_cross_entropy(sigma.float(), occupied.float())
 
 
 def voxel_semantics_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:

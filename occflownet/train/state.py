@@ -33,8 +33,9 @@ from occflownet.train.schedule import warmup_schedule
 TRAIN_KEYS = ("config", "model", "ema_updates", "optimizer", "scheduler", "step", "torch_rng")
 
 # TrainConfig fields a resumed run may change: how long and where it runs, not what it learns.
+# The recipe's name is a label: what a run learns is in the other fields.
 CONTINUATION_FIELDS = frozenset({"dataroot", "out", "max_steps", "time_limit_s", "checkpoint_every", "log_every",
-                                 "num_workers", "device", "precision"})
+                                 "num_workers", "device", "precision", "recipe"})
 
 
 class TrainingError(RuntimeError):

@@ -19,7 +19,7 @@ from occflownet.render.disocclusion import disocclude
 from occflownet.render.footprint import ray_footprint
 from occflownet.render.occupancy_flow import PackedMoves, warp_volumes
 from occflownet.render.volume_render import RenderConfig, render_rays, table_rows
-from occflownet.train.losses import loss_terms
+from occflownet.train.losses import loss_terms, step_data
 from occflownet.train.recipe import TrainConfig
 
 # The renderings a term may need, in the order they are made: each draws its render jitter from the step's
@@ -34,19 +34,15 @@ class LossComputer:
     (``self.needs``)."""
 
     def __init__(self, cfg: TrainConfig, model_cfg: ModelConfig, class_weights: torch.Tensor | None,
-                 render_cfg: RenderConfig | None = None, voxel_weights: torch.Tensor | None = None,
-                 footprint: bool = True):
+                 render_cfg: RenderConfig | None = None, footprint: bool = True):
         self.cfg = cfg
         self.footprint = footprint         # False: never run the heads on the footprint only (tests compare)
-        self.render_cfg = render_cfg or RenderConfig(density_scale=cfg.density_scale, sigma_is=cfg.sigma_is)
+        self.render_cfg = render_cfg or RenderConfig()
         self.class_weights = class_weights
-        self.voxel_weights = voxel_weights   # float32 [18] of the 3D density BCE, or None (unweighted)
-        if cfg.uses_3d and cfg.voxel_weighting != "none" and voxel_weights is None:
-            raise ValueError(f"voxel_weighting={cfg.voxel_weighting!r} needs the voxel_weights [18] "
-                             "(occflownet.data.class_weights.voxel_class_weights)")
         self.depth_bins = torch.tensor(model_cfg.depth_bin_centers(), dtype=torch.float32)
         self.terms = loss_terms(cfg)
         self.needs = frozenset(name for term in self.terms for name in term.needs)
+        self.data = step_data(self.terms)   # what the batch carries (losses.INPUT_DATA)
 
     @property
     def heads_at_rows(self) -> bool:
@@ -58,10 +54,10 @@ class LossComputer:
     def heads_on_footprint(self) -> bool:
         """Whether the semantic head (and σ's, unless the free prior reads every σ) needs to run only on the rays'
         footprint (:meth:`footprint_rows`): the terms read the logits through renderings and the rays' points only
-        (not with 3D labels). Exact: a step computes the same loss and gradients either way
+        (no voxel labels). Exact: a step computes the same loss and gradients either way
         (tests/test_train_losses.py)."""
-        return (self.footprint and not self.cfg.uses_3d and bool(self.needs & {*RENDERINGS, *POINT_INPUTS})
-                and "logits" not in self.needs)
+        return (self.footprint and "voxel_labels" not in self.data
+                and bool(self.needs & {*RENDERINGS, *POINT_INPUTS}) and "logits" not in self.needs)
 
     def head_rows(self, batch: dict, device) -> dict:
         """Keyword arguments of the model's forward for this batch: ``density_at`` / ``logits_at`` (the rows of
@@ -125,11 +121,10 @@ class LossComputer:
           footprint [K, 17] at the batch's "footprint_rows", σ zero off them), "depth_prob" [B, N, D, h, w];
           "feature_intrinsics" [B, N, 3, 3]; "voxel_sigma" [K] and "occupied_logits" [K', 17], σ and the logits at
           the batch's "voxel_rows" (every voxel without) and "occupied_rows" (the model gave them at those rows
-          when :meth:`head_rows` asked it to, else they are picked from the grid); "voxel_labels" [K], the
-          labels of "occ_semantics" at "voxel_rows";
+          when :meth:`head_rows` asked it to, else they are picked from the grid);
         - renderings (:meth:`renderings`): "rendered", "free_opacity" [F], "before_opacity" [S]; at the rays'
           points (:meth:`point_values`) "point_logits" [P, 17], "point_labels" [P], "point_sigma" [P];
-        - constants: "class_weights" [17] or None, "voxel_weights" [18] or None, "depth_bins" [D];
+        - constants: "class_weights" [17] or None, "depth_bins" [D];
         - every other name is a batch field, moved to ``device`` ("ray_depths" [R], "ray_labels" [R], "cam2ego"
           [B, N, 4, 4], "depth_points" B × [P_b, 3], "occ_semantics" [B, X, Y, Z], "occ_mask" [B, X, Y, Z]).
         """
@@ -137,21 +132,17 @@ class LossComputer:
         if density.dim() == 1 and "footprint_rows" in batch:  # heads on the footprint: σ back onto the grids; the
             density = self._on_grids(density, batch)          # logits stay a table [K, 17] (FrameVolumes)
         found = {"density": density, "logits": logits, "depth_bins": self.depth_bins.to(device),
-                 "class_weights": None if self.class_weights is None else self.class_weights.to(device),
-                 "voxel_weights": None if self.voxel_weights is None else self.voxel_weights.to(device)}
+                 "class_weights": None if self.class_weights is None else self.class_weights.to(device)}
         if "voxel_sigma" in self.needs:
             found["voxel_sigma"] = self._at_rows(density.reshape(-1), batch.get("voxel_rows"), density.dim() == 1,
                                                  device)
-        if "voxel_labels" in self.needs:     # the labels (17 = free) of the voxels "voxel_sigma" holds
-            found["voxel_labels"] = self._at_rows(batch["occ_semantics"].to(device).reshape(-1),
-                                                  batch.get("voxel_rows"), False, device)
         if "occupied_logits" in self.needs:
             found["occupied_logits"] = self._at_rows(logits.reshape(-1, logits.shape[-1]), batch["occupied_rows"],
                                                      logits.dim() == 2, device)
         if "depth_prob" in self.needs:
             found.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"])
         if self.needs & {*RENDERINGS, *POINT_INPUTS}:
-            volumes = self.volumes(self.render_density(density, outputs, batch), logits, batch, device)
+            volumes = self.volumes(density, logits, batch, device)
             found.update(self.renderings(volumes, batch, device, generator))
             if self.needs & set(POINT_INPUTS):
                 found.update(self.point_values(volumes, batch, device))
@@ -163,21 +154,6 @@ class LossComputer:
             value = batch[name]
             found[name] = [v.to(device) for v in value] if isinstance(value, list) else value.to(device)
         return found
-
-    def render_density(self, density: torch.Tensor, outputs: dict, batch: dict | None = None) -> torch.Tensor:
-        """σ [B, X, Y, Z] as rendering reads it: ``density`` (the model's, as float32); with ``density_logit_clip``
-        M > 0 sigmoid(clamp(logit, -M, M)) whose gradient passes the clamp straight through (:func:`straight_clamp`);
-        with ``density_grad_floor`` M > 0 the model's σ whose gradient is at least the sigmoid's at ±M
-        (:class:`SigmoidGradientFloor`); with both, the clamped σ with the floor of the smaller M."""
-        clip, floor = self.cfg.density_logit_clip, self.cfg.density_grad_floor
-        if clip <= 0 and floor <= 0:
-            return density
-        logit = outputs["density_logit"].float()
-        if logit.dim() == 1 and batch is not None and "footprint_rows" in batch:   # heads on the footprint
-            logit = self._on_grids(logit, batch)
-        if clip > 0:
-            logit = straight_clamp(logit, clip)
-        return SigmoidGradientFloor.apply(logit, floor) if floor > 0 else torch.sigmoid(logit)
 
     def _on_grids(self, values: torch.Tensor, batch: dict) -> torch.Tensor:
         """values [K, ...] at the batch's "footprint_rows" [K] → [B, X, Y, Z, ...], zero off the footprint (read
@@ -287,32 +263,6 @@ class LossComputer:
                           batch_index=batch["ray_volume"][keep].to(device), far=ends.to(device),
                           logits_index=volumes.logits_index, logits_rows=volumes.logits_rows)
         return out.weight_sum
-
-
-def straight_clamp(x: torch.Tensor, bound: float) -> torch.Tensor:
-    """x clamped to [-bound, bound] in the forward pass, its gradient passed unchanged (straight through): a density
-    logit far out of that range renders as at its edge and keeps the sigmoid's gradient there (σ(1 - σ) ≈ 0.0025
-    at 6) instead of the vanishing one at the logit itself (≈ 3e-7 at -15)."""
-    return x + (x.clamp(-bound, bound) - x).detach()
-
-
-class SigmoidGradientFloor(torch.autograd.Function):
-    """``apply(logit, M)`` → sigmoid(logit), exactly; backward: the gradient times σ'(clamp(logit, -M, M)), i.e. at
-    least σ'(M) (≈ 0.0025 at 6) however far the logit ran out, where the true σ'(-20) ≈ 2e-9 leaves a voxel that
-    the free rays carved early stuck as free. Unlike :func:`straight_clamp` nothing renders differently: a far-out
-    logit still renders σ ≈ 0 (no density floor for the free terms to fight), it only keeps a live gradient."""
-
-    @staticmethod
-    def forward(ctx, logit, bound):
-        ctx.save_for_backward(logit)
-        ctx.bound = float(bound)
-        return torch.sigmoid(logit)
-
-    @staticmethod
-    def backward(ctx, grad):
-        (logit,) = ctx.saved_tensors
-        s = torch.sigmoid(logit.clamp(-ctx.bound, ctx.bound))
-        return grad * s * (1 - s), None
 
 
 @dataclass(frozen=True)
