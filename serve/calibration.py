@@ -7,7 +7,7 @@ warm-up; docs/contracts.md).
 """
 from __future__ import annotations
 
-from occflownet.contract import ModelMetadata, parse_calibration_json
+from occflownet.contract import CalibrationError, ModelMetadata, parse_calibration_json
 from occflownet.runtime import FrameCalibration, frame_calibration
 
 
@@ -23,10 +23,18 @@ def request_calibration(part: bytes | None, metadata: ModelMetadata, sizes: list
 
     ``part`` is the ``calibration`` part's bytes (calibration JSON), None for the model's default calibration.
     Raises :class:`~occflownet.contract.CalibrationError` naming the camera and field, or, for an image whose aspect
-    ratio differs from its calibration's, asking for a ``calibration`` part for that size."""
+    ratio differs from its calibration's, asking for a ``calibration`` part for that size. Whatever else reading
+    the client's part raises (a RecursionError, a TypeError of a value the checks did not foresee) is the client's
+    input too, and raised as a CalibrationError naming the exception: a calibration part never causes a 500."""
     if part is None:
-        calib, source = metadata.default_calibration, "the model's default calibration"
-    else:
-        calib, source = parse_calibration_json(part, "calibration part"), "the request's calibration"
-    return frame_calibration(calib, sizes, reductions=reductions, size=size, cameras=metadata.cameras, source=source,
-                             remedy="a 'calibration' part")
+        return frame_calibration(metadata.default_calibration, sizes, reductions=reductions, size=size,
+                                 cameras=metadata.cameras, source="the model's default calibration",
+                                 remedy="a 'calibration' part")
+    try:
+        calib = parse_calibration_json(part, "calibration part")
+        return frame_calibration(calib, sizes, reductions=reductions, size=size, cameras=metadata.cameras,
+                                 source="the request's calibration", remedy="a 'calibration' part")
+    except CalibrationError:
+        raise
+    except Exception as exc:
+        raise CalibrationError(f"calibration part cannot be used: {type(exc).__name__}: {exc}"[:500]) from None

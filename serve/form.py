@@ -2,8 +2,9 @@
 
 Parts are collected as raw bytes whether or not the client gave a filename (no text decoding, no temporary files).
 A part with an unexpected or repeated name is refused (422) as soon as its headers arrive, before its data is read;
-missing parts are reported (422) once the body has ended. Each part has its own byte limit; the whole body is
-bounded by :class:`occflownet.serve.limits.BodySizeLimitMiddleware`.
+missing parts are reported (422) once the body has ended. Each part has its own byte limit; the whole body's size,
+its deadline and the number of bodies read at once are :class:`occflownet.serve.limits.BodyLimitsMiddleware`'s
+(its refusals, raised from the body reads, pass through here unchanged).
 
 The parts a route allows are one definition, a {name: :class:`FormPart`} dict: the reader's names and limits
 (:func:`read_parts`) and the route's OpenAPI request body (:func:`openapi_request_body`) both come from it. FastAPI's
@@ -18,7 +19,6 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect
 
 from occflownet.serve.errors import ApiError
-from occflownet.serve.limits import BodyTooLarge
 
 
 @dataclass(frozen=True)
@@ -122,7 +122,8 @@ class _PartCollector:
 
 async def read_parts(request, parts: dict[str, FormPart]) -> dict[str, Part]:
     """Read the request's multipart body → {part name: Part} of the allowed ``parts`` (each with its byte limit).
-    Raises ApiError: 415 (not multipart), 400 (malformed), 413 (over a limit), 422 (names)."""
+    Raises ApiError: 415 (not multipart), 400 (malformed), 413 (over a limit), 422 (names), and the body limits'
+    own (408, 413, 503: :class:`occflownet.serve.limits.BodyRefused`)."""
     boundary = _check_content_type(request.headers.get("content-type"))
     collector = _PartCollector(parts)
     parser = MultipartParser(boundary, collector.callbacks())
@@ -131,8 +132,6 @@ async def read_parts(request, parts: dict[str, FormPart]) -> dict[str, Part]:
             if chunk:
                 parser.write(chunk)
         parser.finalize()
-    except BodyTooLarge as exc:
-        raise ApiError(413, "payload_too_large", str(exc), headers={"Connection": "close"}) from None
     except ClientDisconnect:
         raise ApiError(400, "bad_request", "client disconnected during the upload") from None
     except FormParserError as exc:

@@ -12,7 +12,8 @@ readiness the minimum (1 only when every live worker is ready), the start time t
 - ``occflownet_stage_duration_seconds{stage}``                   histogram, stage ∈ decode, queue, inference, encode
 - ``occflownet_http_requests_in_flight``                         gauge
 - ``occflownet_inference_queue_depth`` / ``_inferences_running`` gauges (admitted, waiting / running)
-- ``occflownet_rejected_total{reason}``                          counter (saturated, not_ready)
+- ``occflownet_uploads_in_progress``                             gauge (request bodies being received)
+- ``occflownet_rejected_total{reason}``                          counter (saturated, not_ready, uploads)
 - ``occflownet_model_ready``                                     gauge 0/1
 - ``occflownet_process_start_time_seconds``                      gauge
 """
@@ -31,7 +32,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, gene
 BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
 CONTENT_TYPE = prometheus_client.CONTENT_TYPE_LATEST
 STAGES = ("decode", "queue", "inference", "encode")
-REJECT_REASONS = ("saturated", "not_ready")
+REJECT_REASONS = ("saturated", "not_ready", "uploads")
 MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"  # prometheus_client's own variable
 
 prometheus_client.disable_created_metrics()  # no *_created series: the start time is its own gauge
@@ -80,7 +81,7 @@ class Metrics:
                                           **reg)
         self.stage_duration = Histogram("occflownet_stage_duration_seconds", "Time per stage of POST /v1/occupancy.",
                                         ("stage",), buckets=BUCKETS, **reg)
-        self.rejected = Counter("occflownet_rejected", "Occupancy requests refused with 503, by reason.",
+        self.rejected = Counter("occflownet_rejected", "Requests refused with 503, by reason.",
                                 ("reason",), **reg)
         self.in_flight = Gauge("occflownet_http_requests_in_flight", "HTTP requests being handled now.",
                                multiprocess_mode="livesum", **reg)
@@ -89,6 +90,8 @@ class Metrics:
                                  **reg)
         self.running = Gauge("occflownet_inferences_running", "Inferences running now.", multiprocess_mode="livesum",
                              **reg)
+        self.uploads = Gauge("occflownet_uploads_in_progress", "Request bodies being received now.",
+                             multiprocess_mode="livesum", **reg)
         self.ready = Gauge("occflownet_model_ready", "1 once the warm-up inference has succeeded (every worker).",
                            multiprocess_mode="livemin", **reg)
         self.started = Gauge("occflownet_process_start_time_seconds", "Start time of the process (Unix time).",
@@ -117,6 +120,9 @@ class Metrics:
     def set_gate(self, queued: int, running: int) -> None:
         self.queue_depth.set(queued)
         self.running.set(running)
+
+    def set_uploads(self, active: int) -> None:
+        self.uploads.set(active)
 
     def set_ready(self) -> None:
         self.ready.set(1)

@@ -1,4 +1,7 @@
-"""ASGI middlewares of the app: request metrics (outermost) and the optional API key.
+"""ASGI middlewares of the app: the headers of every answer (outermost), request metrics and the optional API key.
+
+Every answer, whatever wrote it (a route, an error handler, a middleware's refusal), carries
+``X-Content-Type-Options: nosniff`` (:data:`EVERY_ANSWER`): browsers take each body as its declared media type.
 
 API key: when ``OCCFLOWNET_API_KEY`` is set, every route except ``/healthz`` and ``/readyz`` (probes) and the
 browser page's static files (``/``, ``/ui``, its script: no model data; the page sends the key itself) needs
@@ -17,6 +20,30 @@ from occflownet.serve.routers.ui import PATHS as UI_PATHS
 PUBLIC_PATHS = ("/healthz", "/readyz", *UI_PATHS)
 ROUTES = ("/healthz", "/readyz", "/metrics", "/v1/metadata", "/v1/occupancy", "/docs", "/redoc", "/openapi.json",
           *UI_PATHS)
+
+
+EVERY_ANSWER = ((b"x-content-type-options", b"nosniff"),)
+
+
+class HeadersMiddleware:
+    """Adds :data:`EVERY_ANSWER`'s headers to each response that does not set them itself."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+
+        async def send_with_headers(message):
+            if message["type"] == "http.response.start":
+                headers = list(message.get("headers", []))
+                present = {key.lower() for key, _ in headers}
+                headers += [(key, value) for key, value in EVERY_ANSWER if key not in present]
+                message = {**message, "headers": headers}
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
 
 
 def route_label(path: str) -> str:

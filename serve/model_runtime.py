@@ -29,11 +29,46 @@ from occflownet.serve.calibration import request_calibration
 from occflownet.serve.decode import common_size
 from occflownet.serve.settings import ServeSettings
 
-__all__ = ["ModelLoadError", "ModelRuntime"]
+__all__ = ["ModelLoadError", "ModelRuntime", "check_providers"]
 
 
 class ModelLoadError(RuntimeError):
-    """The model file is missing, unreadable, not ONNX, or breaks contract v1; the message names the file."""
+    """The model file is missing, unreadable, not ONNX, or breaks contract v1, or an execution provider asked for is
+    not available; the message names the file (or the provider)."""
+
+
+def check_providers(providers: list[str]) -> None:
+    """ModelLoadError unless every one of ``providers`` is an execution provider of this onnxruntime build (a
+    misspelt name, or a GPU provider in a CPU-only install, would otherwise fall back to the CPU with only a Python
+    warning)."""
+    import onnxruntime as ort
+
+    available = ort.get_available_providers()
+    missing = [p for p in providers if p not in available]
+    if missing:
+        known = set(ort.get_all_providers())
+        what = ", ".join(f"{p} ({'not in this onnxruntime build' if p in known else 'unknown name'})"
+                         for p in missing)
+        raise ModelLoadError(f"OCCFLOWNET_PROVIDERS / --providers: {what}; available here: {', '.join(available)}")
+
+
+def _file_sha256(path: Path) -> str:
+    """SHA-256 (hex) of the file at ``path``; ModelLoadError naming it when it is missing, a folder or unreadable
+    (an OSError's own words: "permission denied" where onnxruntime would say "system error number 13")."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(block)
+    except FileNotFoundError:
+        raise ModelLoadError(f"model file not found: {path}") from None
+    except PermissionError:
+        raise ModelLoadError(f"cannot read model {path}: permission denied") from None
+    except IsADirectoryError:
+        raise ModelLoadError(f"model {path} is a folder, not a file") from None
+    except OSError as exc:
+        raise ModelLoadError(f"cannot read model {path}: {exc.strerror or exc}") from None
+    return digest.hexdigest()
 
 
 class ModelRuntime:
@@ -53,15 +88,17 @@ class ModelRuntime:
 
     @classmethod
     def load(cls, path: str | Path, settings: ServeSettings) -> "ModelRuntime":
-        """Open ``path`` with onnxruntime and check contract v1. Raises ModelLoadError naming the file."""
+        """Open ``path`` with onnxruntime and check contract v1. Raises ModelLoadError naming the file: not found,
+        permission denied (the file or a folder on its path), not ONNX, breaking the contract; or naming the
+        execution providers asked for that this onnxruntime does not have."""
         path = Path(path)
         if not str(path):
             raise ModelLoadError("no model given: pass --model FILE or set OCCFLOWNET_MODEL")
-        if not path.is_file():
-            raise ModelLoadError(f"model file not found: {path}")
+        settings = settings.resolved()
+        check_providers(settings.providers)
+        sha256 = _file_sha256(path)  # reads the file first: a file we cannot read is named as such
         from occflownet.contract import create_session
 
-        settings = settings.resolved()
         try:
             session = create_session(path, settings.intra_op_threads, spinning=settings.ort_spin,
                                      providers=settings.providers, check_contract=False)
@@ -72,11 +109,7 @@ class ModelRuntime:
             metadata = check_session(session, str(path))
         except ContractError as exc:
             raise ModelLoadError(str(exc)) from None
-        digest = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                digest.update(block)
-        return cls(OnnxPredictor(session, metadata), path, digest.hexdigest())
+        return cls(OnnxPredictor(session, metadata), path, sha256)
 
     def frame(self, part: bytes | None, sizes: list[tuple[int, int]], reductions: list[int] | None = None
               ) -> FrameCalibration:

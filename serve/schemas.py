@@ -48,6 +48,8 @@ class Limits(BaseModel):
     max_image_pixels: int = Field(description="pixels per image, checked from the header before decoding")
     max_inflight: int = Field(description="requests computing at once in this worker")
     max_queue: int = Field(description="requests admitted beyond those computing; more get 503")
+    max_uploads: int = Field(description="request bodies received at once in this worker; more get 503")
+    body_timeout_s: float = Field(description="seconds a request body may take to arrive; then 408")
 
 
 class Server(BaseModel):

@@ -16,11 +16,15 @@ import string in fresh processes), so ``occflownet serve`` writes its settings i
 | ``OCCFLOWNET_INTRA_OP_THREADS``   | intra_op_threads   | max(1, cores // workers)                             |
 | ``OCCFLOWNET_MAX_INFLIGHT``       | max_inflight       | max(1, (cores // workers) // intra_op_threads)       |
 | ``OCCFLOWNET_MAX_QUEUE``          | max_queue          | 4 (requests admitted beyond those running)           |
+| ``OCCFLOWNET_MAX_UPLOADS``        | max_uploads        | 32 (request bodies being received at once)           |
+| ``OCCFLOWNET_BODY_TIMEOUT_S``     | body_timeout_s     | 30: seconds for a whole body to arrive, else 408     |
+| ``OCCFLOWNET_SHUTDOWN_TIMEOUT_S`` | shutdown_timeout_s | 20: seconds SIGTERM waits for requests in flight     |
 | ``OCCFLOWNET_WORKERS``            | workers            | 1 (only used for the defaults above)                 |
 | ``OCCFLOWNET_ORT_SPIN``           | ort_spin           | 0: ORT worker threads sleep between runs             |
 | ``OCCFLOWNET_PROVIDERS``          | providers          | CPUExecutionProvider (comma-separated list)          |
 | ``OCCFLOWNET_WARMUP``             | warmup             | 1: one inference before /readyz turns ready          |
 | ``OCCFLOWNET_UI``                 | ui                 | 1: the browser page at /ui (0: the API only)         |
+| ``OCCFLOWNET_DOCS``               | docs               | 0: no /docs, /redoc (1: on; they load from a CDN)    |
 
 Booleans take 1/0, true/false, yes/no, on/off; an empty variable counts as unset.
 """
@@ -37,6 +41,9 @@ MODEL_ENV = ENV_PREFIX + "MODEL"
 DEFAULT_MAX_BODY_BYTES = 64 * 1024 * 1024
 DEFAULT_MAX_IMAGE_PIXELS = 4096 * 4096
 DEFAULT_MAX_QUEUE = 4
+DEFAULT_MAX_UPLOADS = 32
+DEFAULT_BODY_TIMEOUT_S = 30.0
+DEFAULT_SHUTDOWN_TIMEOUT_S = 20.0
 MAX_CALIBRATION_BYTES = 1024 * 1024
 
 
@@ -74,12 +81,22 @@ class ServeSettings(BaseSettings):
                                      "max(1, cores // workers // threads)")
     max_queue: int = Field(DEFAULT_MAX_QUEUE, ge=0, description="requests admitted beyond those computing; more get "
                            "503 + Retry-After")
+    max_uploads: int = Field(DEFAULT_MAX_UPLOADS, ge=1, description="request bodies being received at once; more "
+                             "get 503 + Retry-After (a stalled upload never holds an inference or queue place)")
+    body_timeout_s: float = Field(DEFAULT_BODY_TIMEOUT_S, gt=0, description="seconds a request body may take to "
+                                  "arrive in full, counted from its headers; then 408 and the connection is closed",
+                                  json_schema_extra={"flag": "body-timeout"})
+    shutdown_timeout_s: float = Field(DEFAULT_SHUTDOWN_TIMEOUT_S, gt=0, description="seconds SIGTERM waits for "
+                                      "the requests in flight before it cancels them",
+                                      json_schema_extra={"flag": "shutdown-timeout"})
     workers: int = Field(1, ge=1, description="uvicorn worker processes, each with its own model session")
     ort_spin: bool = Field(False, description="onnxruntime threads spin between runs")
     providers: Annotated[list[str], NoDecode] = Field(["CPUExecutionProvider"], min_length=1,
                                                      description="onnxruntime execution providers, comma-separated")
     warmup: bool = Field(True, description="one inference before /readyz turns ready")
     ui: bool = Field(True, description="the browser page at /ui; off: the API only")
+    docs: bool = Field(False, description="the interactive API docs at /docs and /redoc (they load Swagger UI and "
+                       "ReDoc from a CDN in the browser); /openapi.json is served either way")
 
     @field_validator("providers", mode="before")
     @classmethod

@@ -1,12 +1,17 @@
 """Test helpers for serve/: a small fake model that follows ONNX contract v1 exactly, its numpy reference, images.
 
-The fake model's outputs depend on every input, so the tests can tell whether the server fed the right tensors:
+The fake model's outputs depend on every input, and on which image is which camera's, so the tests can tell whether
+the server fed the right tensors in the right order:
     m   = mean of all image bytes                       (per batch item)
+    r_k = mean of the bytes of camera k's top image row (k = 0..5 in the model's camera order; a sum of at most
+          2^24 / 255 integers is exact in float32 whatever the order, so floor(r_k) is the same on every CPU)
     u   = fx of CAM_FRONT / image width                 (scale-invariant: unchanged by consistent resizing)
     tx  = x translation of CAM_FRONT's cam2ego
     z   = ramp + 4 (m/255 - 0.5) + 8 (u - u0) + (tx - tx0),  ramp = P/4 - 2 with a fixed uint8 pattern P in [0, 16]
     density   = sigmoid(z)                              float32 [B, 200, 200, 16]
-    occupancy = (floor(m) + P) mod 17 where density >= threshold else 17     uint8 [B, 200, 200, 16]
+    occupancy = (floor(r_k) + P) mod 17 where density >= threshold else 17   uint8 [B, 200, 200, 16], where
+                k = camera_slab(x) = x * 6 // 200: camera k's image decides the classes of the k-th sixth of the
+                grid along x (:func:`camera_slab`), so images swapped between cameras swap classes between slabs.
 u0 and tx0 come from the default calibration, so black images with it give density = sigmoid(ramp - 2).
 """
 from __future__ import annotations
@@ -14,6 +19,7 @@ from __future__ import annotations
 import io
 import json
 import socket
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -31,6 +37,17 @@ DEFAULT_SIZE = (480, 270)  # (w, h) of the fake model's default calibration
 
 def fake_pattern(seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).integers(0, 17, size=GRID.shape, dtype=np.uint8)
+
+
+def camera_slab(x: np.ndarray | int) -> np.ndarray | int:
+    """The camera (index in the model's camera order) whose image decides the fake model's classes at grid index
+    ``x``: the six equal-as-can-be slabs of x, 0..199 → 0..5."""
+    return np.asarray(x) * 6 // GRID.shape[0]
+
+
+def _camera_of_voxel() -> np.ndarray:
+    """int64 [200, 200, 16]: :func:`camera_slab` of each voxel's x."""
+    return np.broadcast_to(camera_slab(np.arange(GRID.shape[0]))[:, None, None], GRID.shape).astype(np.int64)
 
 
 def fake_metadata(threshold: float = 0.5, default_size=DEFAULT_SIZE) -> dict:
@@ -87,6 +104,8 @@ def _fake_initializers(threshold: float, seed: int, default_size) -> list:
         const("tx0", np.float32(tx0)), const("tau", np.float32(threshold)), const("seventeen", np.int64(17)),
         const("free", np.uint8(FREE)), const("axes123", np.array([1, 2, 3], np.int64)),
         const("i0", np.array(0, np.int64)), const("i3", np.array(3, np.int64)),
+        const("C", _camera_of_voxel()), const("row0", np.array([0], np.int64)), const("row1", np.array([1], np.int64)),
+        const("axis2", np.array([2], np.int64)),
     ]
 
 
@@ -99,7 +118,6 @@ def _fake_nodes() -> list:
     return [
         n("Cast", ["images"], ["img_f"], to=TensorProto.FLOAT),
         n("ReduceMean", ["img_f"], ["m"], axes=[1, 2, 3, 4], keepdims=0),           # [B]
-        n("Unsqueeze", ["m", "axes123"], ["m4"]),                                   # [B,1,1,1]
         n("Shape", ["images"], ["shape"]),
         n("Gather", ["shape", "i3"], ["w_i"], axis=0),
         n("Cast", ["w_i"], ["w_f"], to=TensorProto.FLOAT),
@@ -124,10 +142,13 @@ def _fake_nodes() -> list:
         n("Sub", ["Pq", "two"], ["ramp"]),                                          # [200,200,16]
         n("Add", ["ramp", "shift4"], ["z"]),                                        # [B,200,200,16]
         n("Sigmoid", ["z"], ["density"]),
-        n("Floor", ["m4"], ["m_floor"]),
-        n("Cast", ["m_floor"], ["m_int"], to=TensorProto.INT64),
+        n("Slice", ["img_f", "row0", "row1", "axis2"], ["top"]),                   # [B,6,1,W,3]
+        n("ReduceMean", ["top"], ["r"], axes=[2, 3, 4], keepdims=0),                # [B,6]
+        n("Floor", ["r"], ["r_floor"]),
+        n("Cast", ["r_floor"], ["r_int"], to=TensorProto.INT64),
+        n("Gather", ["r_int", "C"], ["r_voxel"], axis=1),                           # [B,200,200,16]
         n("Cast", ["P"], ["P64"], to=TensorProto.INT64),
-        n("Add", ["P64", "m_int"], ["sem_raw"]),
+        n("Add", ["P64", "r_voxel"], ["sem_raw"]),
         n("Mod", ["sem_raw", "seventeen"], ["sem64"]),
         n("Cast", ["sem64"], ["sem"], to=TensorProto.UINT8),
         n("GreaterOrEqual", ["density", "tau"], ["occupied"]),
@@ -145,11 +166,12 @@ def fake_reference(images: np.ndarray, intrinsics: np.ndarray, cam2ego: np.ndarr
     tx0 = np.float32(front["cam2ego"][0][3])
     P = fake_pattern(seed)
     m = np.float32(images.astype(np.float32).mean(dtype=np.float64))
+    r = np.floor(images[:, 0].astype(np.float64).mean(axis=(1, 2))).astype(np.int64)      # [6]: top rows
     u = np.float32(intrinsics[0, 0, 0]) / np.float32(images.shape[2])
     shift = (m * np.float32(1 / 255) - np.float32(0.5)) * 4 + (u - u0) * 8 + (np.float32(cam2ego[0, 0, 3]) - tx0)
     z = P.astype(np.float32) * np.float32(0.25) - 2 + np.float32(shift)
     density = 1 / (1 + np.exp(-z.astype(np.float64)))
-    sem = ((P.astype(np.int64) + int(np.floor(m))) % 17).astype(np.uint8)
+    sem = ((P.astype(np.int64) + r[_camera_of_voxel()]) % 17).astype(np.uint8)
     return np.where(density >= threshold, sem, FREE).astype(np.uint8)
 
 
@@ -204,6 +226,60 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@contextmanager
+def running_server(app, **config):
+    """uvicorn serving ``app`` in a thread on a free 127.0.0.1 port (``config``: more uvicorn.Config arguments)
+    → base URL; stopped on exit."""
+    import threading
+    import time
+
+    import uvicorn
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", **config))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
+        time.sleep(0.01)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(10)
+
+
+def stalled_upload(port: int, sent: int = 1000, declared: int = 1_000_000) -> socket.socket:
+    """A client that stalls: a connection to 127.0.0.1:``port`` that sends the headers of a ``POST /v1/occupancy``
+    declaring a body of ``declared`` bytes, then ``sent`` bytes of it, then nothing. The caller closes it."""
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+    sock.sendall(b"POST /v1/occupancy HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+                 b"Content-Length: %d\r\n\r\n" % declared + b"--b\r\n" + b"x" * max(0, sent - 5))
+    return sock
+
+
+def read_answer(sock: socket.socket, timeout: float) -> bytes:
+    """What the server sends on ``sock`` until it closes the connection or ``timeout`` seconds pass (b"" if it
+    sent nothing)."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    answer = b""
+    while time.monotonic() < deadline:
+        sock.settimeout(max(0.01, deadline - time.monotonic()))
+        try:
+            data = sock.recv(65536)
+        except socket.timeout:
+            break
+        except ConnectionResetError:
+            break
+        if not data:
+            break
+        answer += data
+    return answer
 
 
 def stop_server(proc, timeout: float = 20.0) -> None:

@@ -7,14 +7,12 @@ import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
-import uvicorn
-from serve_fixtures import (build_fake_model, free_port, image_files, metric_samples, stop_server,
+from serve_fixtures import (build_fake_model, free_port, image_files, metric_samples, running_server, stop_server,
                             synthetic_images)
 
 from occflownet.serve.app import create_app
@@ -29,24 +27,6 @@ IMAGES = synthetic_images((96, 54))
 @pytest.fixture(scope="module")
 def model_path(tmp_path_factory):
     return build_fake_model(tmp_path_factory.mktemp("serve-server") / "fake.onnx")
-
-
-@contextmanager
-def running_server(app):
-    """uvicorn serving ``app`` in a thread on a free 127.0.0.1 port → base URL; stopped on exit."""
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
-        time.sleep(0.01)
-    try:
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        server.should_exit = True
-        thread.join(10)
 
 
 def post_ok(base: str, **kw) -> np.ndarray:

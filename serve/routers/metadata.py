@@ -22,5 +22,6 @@ async def metadata(runtime: RuntimeDep, settings: SettingsDep) -> Metadata:
         class_colors=md.class_colors.tolist(), threshold=md.threshold, input_size=list(md.input_size),
         default_calibration=md.default_calibration,
         limits=Limits(max_body_bytes=settings.max_body_bytes, max_image_pixels=settings.max_image_pixels,
-                      max_inflight=settings.max_inflight, max_queue=settings.max_queue),
+                      max_inflight=settings.max_inflight, max_queue=settings.max_queue,
+                      max_uploads=settings.max_uploads, body_timeout_s=settings.body_timeout_s),
         formats=list(FORMATS), server=Server(occflownet_version=__version__))

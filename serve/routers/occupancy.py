@@ -1,11 +1,15 @@
 """``POST /v1/occupancy``: six camera images (multipart) → the Occ3D occupancy grid of the ego frame.
 
 Request pipeline (CPU work never on the event loop), each step refusing what it can before the next:
-Accept → 406 | not warmed up → 503 | queue full → 503 + Retry-After | stream multipart parts (422/413/415/400) |
-read image headers, check pixel limits (413/400) | the frame's calibration for the tensor size (400) | wait for a CPU
-slot | decode the six images in threads straight into the [6, H, W, 3] tensor, resizing any not at the common size
-(400) | run ORT on the inference thread | encode in a thread | release the slot. The model's inputs come from the one
-feeds function (``ModelRuntime.frame`` → ``FrameCalibration.inputs``, :mod:`occflownet.runtime`), as the warm-up's.
+Accept → 406 | not warmed up → 503 | inference queue already full → 503 + Retry-After (before the body is read) |
+stream multipart parts (422/413/415/400; the body limits' 408/413/503) | read image headers, check pixel limits
+(413/400) | the frame's calibration for the tensor size (400) | admission to the inference queue (503 +
+Retry-After) | wait for a CPU slot | decode the six images in threads straight into the [6, H, W, 3] tensor,
+resizing any not at the common size (400) | run ORT on the inference thread | encode in a thread | release the
+slot. A request takes a place in the inference queue only once its whole body has been read and checked, so a
+client that uploads slowly or stalls holds nothing but its own upload (bounded in time and number,
+:mod:`occflownet.serve.limits`). The model's inputs come from the one feeds function (``ModelRuntime.frame`` →
+``FrameCalibration.inputs``, :mod:`occflownet.runtime`), as the warm-up's.
 """
 from __future__ import annotations
 
@@ -54,10 +58,12 @@ RESPONSES = {
                    "multipart body is malformed"),
     401: error_doc("API key required (Authorization: Bearer <key>) and missing or wrong"),
     406: error_doc("Accept names no supported format"),
+    408: error_doc("the body did not arrive in full within the body timeout of its headers (connection closed)"),
     413: error_doc("body over the size limit, or an image header claims more pixels than the limit"),
     415: error_doc("body is not multipart/form-data"),
     422: error_doc("missing, extra, repeated or unnamed parts"),
-    503: error_doc("model not ready yet (warming up) or server saturated; see Retry-After"),
+    503: error_doc("model not ready yet (warming up), server saturated or too many uploads at once (see "
+                   "Retry-After), or shutting down"),
 }
 
 
@@ -84,21 +90,26 @@ async def occupancy(request: Request, media_type: MediaTypeDep, runtime: ReadyRu
                     gate: GateDep, metrics: MetricsDep) -> Response:
     """Six camera images (one multipart part per camera, JPEG or PNG, and optionally a calibration part) → the
     occupancy grid uint8 [200, 200, 16] ([x, y, z] of the ego frame, 17 = free) in the format chosen by Accept."""
+    _admit(gate, metrics, gate.check)                      # full already: refused before the upload
+    parts = await read_parts(request, occupancy_parts(runtime.metadata.cameras, settings.max_body_bytes))
+    reductions, frame = _checked_inputs(parts, runtime, settings.max_image_pixels)
+    _admit(gate, metrics, gate.admit)
     try:
-        gate.admit()
-    except Saturated as exc:
-        metrics.reject("saturated")
-        raise ApiError(503, "saturated", f"all {gate.capacity} inference/queue slots are taken; retry in "
-                       f"{exc.retry_after} s", {"Retry-After": str(exc.retry_after)}) from None
-    try:
-        md = runtime.metadata
-        parts = await read_parts(request, occupancy_parts(md.cameras, settings.max_body_bytes))
-        reductions, frame = _checked_inputs(parts, runtime, settings.max_image_pixels)
         body, headers = await _compute(gate, runtime, metrics, parts, reductions, frame, settings.max_image_pixels,
                                        media_type)
         return Response(body, media_type=media_type, headers=headers)
     finally:
         gate.leave()
+
+
+def _admit(gate: InferenceGate, metrics: Metrics, step) -> None:
+    """``gate.check`` or ``gate.admit``; Saturated → 503 ``saturated`` with Retry-After (counted)."""
+    try:
+        step()
+    except Saturated as exc:
+        metrics.reject("saturated")
+        raise ApiError(503, "saturated", f"all {gate.capacity} inference/queue slots are taken; retry in "
+                       f"{exc.retry_after} s", {"Retry-After": str(exc.retry_after)}) from None
 
 
 def _checked_inputs(parts: dict[str, Part], runtime: ModelRuntime, max_pixels: int

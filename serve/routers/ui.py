@@ -18,7 +18,7 @@ SCRIPT_PATH = "/ui/occflownet-web.js"
 PATHS = ("/", "/ui", SCRIPT_PATH)
 POLICY = ("default-src 'none'; script-src 'self'; style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; "
           "connect-src 'self'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
-_HEADERS = {"Content-Security-Policy": POLICY, "X-Content-Type-Options": "nosniff", "Cache-Control": "no-cache"}
+_HEADERS = {"Content-Security-Policy": POLICY, "Cache-Control": "no-cache"}  # nosniff: on every answer
 
 
 def make_router() -> APIRouter:
