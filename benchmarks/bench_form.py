@@ -44,12 +44,12 @@ def make_app(kind: str, max_body: int):
 
     from occflownet.serve.errors import add_error_handlers
     from occflownet.serve.form import read_parts
-    from occflownet.serve.limits import BodySizeLimitMiddleware
+    from occflownet.serve.limits import BodyLimitsMiddleware, Uploads
     from occflownet.serve.routers.occupancy import occupancy_parts
 
     app = FastAPI()
     add_error_handlers(app)
-    app.add_middleware(BodySizeLimitMiddleware, max_bytes=max_body)
+    app.add_middleware(BodyLimitsMiddleware, max_bytes=max_body, uploads=Uploads(32, 300.0))
     app.get("/readyz")(lambda: {"status": "ready"})
     if kind == "reader":
         @app.post("/v1/occupancy")
