@@ -5,7 +5,8 @@ import { build } from "esbuild";
 import { createHash } from "node:crypto";
 import { readFileSync, readdirSync, writeFileSync } from "node:fs";
 
-const OUT = "../occflownet/viewer/assets/occflownet-web.js";
+// The bundle's path: the package's by default, or the first argument (scripts/build-web --check builds elsewhere).
+const OUT = process.argv[2] ?? "../occflownet/viewer/assets/occflownet-web.js";
 const inputs = ["package.json", "package-lock.json", "build.mjs",
   ...readdirSync("src").filter((f) => f.endsWith(".js")).sort().map((f) => `src/${f}`)];
 const hash = createHash("sha256");
