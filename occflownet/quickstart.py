@@ -54,11 +54,12 @@ class QuickstartConfig:
 @dataclass(frozen=True)
 class StageCosts:
     """What each stage of the quickstart costs per unit of work on the reference machine (float32 matmul rate
-    :data:`~occflownet.train.recipes.REFERENCE_GFLOPS`; a training step costs its recipe's ``step_seconds``): the
+    ``matmul_gflops``; a training step costs its recipe's ``step_seconds``, measured on the same machine): the
     basis of the estimate printed at the start (:func:`estimate_minutes`). Measured on the 2-core development
     machine (AMD EPYC, AVX-512 with bf16) by ``python benchmarks/perf/bench_quickstart.py``, which runs the
     quickstart and divides each stage's seconds by its units (docs/results.md)."""
 
+    matmul_gflops: float = REFERENCE_GFLOPS  # the reference machine's float32 matmul rate
     synth_per_keyframe: float = 1.16       # seconds: render, LiDAR, sweeps, labels of one keyframe
     prepare_per_keyframe: float = 0.013
     train_setup: float = 5.0               # seconds before the first step (class counts, spawned data workers,
@@ -86,7 +87,7 @@ def estimate_minutes(cfg: QuickstartConfig, gflops: float, costs: StageCosts = S
     rates; training is the smaller of its step cap and its time budget (the budget when the recipe's step was not
     measured). A rough guide (±30 % on machines like the reference, more on others), printed so that a user knows
     what to expect; nothing depends on it."""
-    scale = REFERENCE_GFLOPS / max(gflops, 1e-3)
+    scale = costs.matmul_gflops / max(gflops, 1e-3)
     keyframes = cfg.scenes * cfg.frames
     val = cfg.frames                                          # the last scene is the val split
     per_step = recipe(cfg.recipe).step_seconds

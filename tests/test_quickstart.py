@@ -48,16 +48,17 @@ def test_quickstart_small(tmp_path, capsys):
 
 def test_the_estimate_scales_with_the_machine_and_caps_training_at_its_budget():
     from occflownet.quickstart import QuickstartConfig, StageCosts, estimate_minutes
+    from occflownet.train.recipes import RECIPES
 
     costs = StageCosts(matmul_gflops=100.0, synth_per_keyframe=2.0, prepare_per_keyframe=0.5, train_setup=6.0,
-                       train_per_step=0.3, eval_per_keyframe=1.0, export=12.0)
-    cfg = QuickstartConfig(scenes=3, frames=10, train_minutes=7.0, max_steps=1000, supervision="3d")
+                       eval_per_keyframe=1.0, export=12.0)
+    cfg = QuickstartConfig(scenes=3, frames=10, train_minutes=7.0, max_steps=1000, recipe="quickstart-3d")
     same = estimate_minutes(cfg, 100.0, costs)
-    assert same == pytest.approx({"synth": 1.0, "prepare": 0.25, "train": 5.1, "eval": 10 / 60, "export": 0.2})
-    for rendering in ("2d", "2d+3d"):                             # a step that renders rays costs its own figure
-        minutes = estimate_minutes(dataclasses.replace(cfg, supervision=rendering, max_steps=100),
-                                   100.0, dataclasses.replace(costs, train_per_rendering_step=1.2))
-        assert minutes["train"] == pytest.approx(2.1)
-    slower = estimate_minutes(cfg, 50.0, costs)                   # half the matmul rate: twice the time ...
+    step = RECIPES["quickstart-3d"].step_seconds                   # a step costs its recipe's measured seconds
+    assert same == pytest.approx({"synth": 1.0, "prepare": 0.25, "train": (6.0 + 1000 * step) / 60,
+                                  "eval": 10 / 60, "export": 0.2})
+    rendering = estimate_minutes(dataclasses.replace(cfg, recipe="quickstart", max_steps=100), 100.0, costs)
+    assert rendering["train"] == pytest.approx((6.0 + 100 * RECIPES["quickstart"].step_seconds) / 60)
+    slower = estimate_minutes(dataclasses.replace(cfg, max_steps=3000), 50.0, costs)   # half the matmul rate ...
     assert slower["synth"] == pytest.approx(2.0) and slower["export"] == pytest.approx(0.4)
     assert slower["train"] == pytest.approx(7.0)                  # ... but training stops at its time budget
