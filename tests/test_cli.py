@@ -6,7 +6,22 @@ from occflownet.cli import VERBS, build_parser
 
 def test_all_design_verbs_exist():
     assert set(VERBS) == {"synth", "labels", "prepare", "train", "eval", "export", "predict", "serve", "quickstart",
-                          "view"}
+                          "view", "recipes"}
+
+
+def test_recipes_lists_every_recipe_with_its_figure(capsys):
+    from occflownet.cli import main
+    from occflownet.train.recipes import RECIPES
+
+    assert main(["recipes", "--names"]) == 0
+    assert capsys.readouterr().out.split() == list(RECIPES)
+    assert main(["recipes"]) == 0
+    table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ")][2:]
+    assert len(table) == len(RECIPES) and "**recommended** (default)" in table[0]
+    for line, r in zip(table, RECIPES.values()):
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        assert r.name in cells[0] and cells[1] == r.supervises and cells[4] == r.source
+        assert (cells[2] == "not measured") == (r.step_seconds is None)
 
 
 def test_help_runs_without_torch():
