@@ -16,7 +16,7 @@ def test_recipes_lists_every_recipe_with_its_figure(capsys):
     assert main(["recipes", "--names"]) == 0
     assert capsys.readouterr().out.split() == list(RECIPES)
     assert main(["recipes"]) == 0
-    table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ")][2:]
+    table = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ")][1:]
     assert len(table) == len(RECIPES) and "**recommended** (default)" in table[0]
     for line, r in zip(table, RECIPES.values()):
         cells = [c.strip() for c in line.strip("|").split("|")]
