@@ -6,6 +6,8 @@ from occflownet.occ3d import GRID
 from occflownet.geometry import quaternion_to_matrix, yaw_to_quaternion
 from occflownet.data.box_voxels import enlarged_extent, voxel_centers, voxels_in_box
 
+# The comparisons below are exact: they compare voxel indices (integers), which voxels_in_box and the brute force
+# decide in float64 with a 1e-9 margin at the box faces, where CPUs' rounding differs by ~1e-14.
 # (0.2, 0.2, 1.2) is a voxel centre: x, y centres are -39.8 + 0.4 n, z centres -0.8 + 0.4 n.
 CENTRE = np.array([0.2, 0.2, 1.2])
 CENTRE_IDX = np.array([100, 100, 5])

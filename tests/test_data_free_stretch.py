@@ -105,7 +105,7 @@ def test_both_rules_render_free_through_the_labels(prepared_synth_root):
 
     fraction, points = stretches("fraction"), stretches("points")
     walls = np.isin(points.labels, (15, 16))             # manmade, vegetation
-    np.testing.assert_array_equal(fraction.depths, points.depths)
+    np.testing.assert_array_equal(fraction.depths, points.depths)      # exact: the same rays (the rule sets ends only)
     np.testing.assert_allclose(fraction.free_ends, free_segment_ends(fraction.depths), rtol=1e-6)
     ours, share = opacity(fraction, fraction.free_ends)
     fixed, _ = opacity(fraction, fraction.depths - 0.6)

@@ -169,7 +169,7 @@ def test_save_load_round_trip_and_stale_index(tables_root):
     save_index(index, fx.root)
     loaded = load_index(fx.root)  # version found automatically
     assert loaded.tokens == index.tokens and loaded.splits == index.splits
-    for key, value in index.arrays.items():
+    for key, value in index.arrays.items():      # exact: written and read back (copies)
         np.testing.assert_array_equal(loaded.arrays[key], value, err_msg=key)
     a, b = index[4], loaded[4]
     assert a.token == b.token and a.cameras[2].path == b.cameras[2].path

@@ -95,6 +95,7 @@ def test_ray_builder_drops_exactly_the_rays_whose_sight_a_box_blocks(fixture_wor
         # the keyframe's boxes (the car, the pedestrian) and, for t ≠ 0, those of frame j as well
         assert len(boxes) == (2 if t == 0 else 4)
         blocked = blocked_by_boxes(a.origins, a.directions, a.depths, boxes)
+        # exact: the kept rays are copies of the plain ones, chosen by the same function on the same inputs
         np.testing.assert_array_equal(k.depths, a.depths[~blocked])
         np.testing.assert_array_equal(k.origins, a.origins[~blocked])
         dropped_total += int(blocked.sum())
@@ -113,5 +114,5 @@ def test_ray_builder_drops_exactly_the_rays_whose_sight_a_box_blocks(fixture_wor
                                     np.full(int((free_kept.time_offsets == t).sum()), np.inf),
                                     sight.sight_boxes(position, j)).any()
                    for t, j in index.neighbours(position, horizon))
-    # cached masks give the same rays again
+    # cached masks give the same rays again (exact: copies)
     np.testing.assert_array_equal(sight.rays(position).depths, kept.depths)

@@ -54,7 +54,7 @@ def test_occupancy_errors_name_the_problem(tmp_path):
 def test_lidar_and_lidarseg_loaders(tmp_path):
     pts = np.arange(20, dtype=np.float32).reshape(4, 5)
     pts.tofile(tmp_path / "ok.pcd.bin")
-    np.testing.assert_array_equal(load_lidar(tmp_path, "ok.pcd.bin"), pts)
+    np.testing.assert_array_equal(load_lidar(tmp_path, "ok.pcd.bin"), pts)       # exact: read back
     np.arange(7, dtype=np.float32).tofile(tmp_path / "bad.pcd.bin")
     with pytest.raises(DatasetError, match="bad.pcd.bin: 7 float32 values is not a multiple of 5"):
         load_lidar(tmp_path, "bad.pcd.bin")

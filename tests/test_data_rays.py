@@ -37,7 +37,7 @@ def test_ray_fields_shapes_and_dtypes(fixture_world, index):
         a = getattr(rays, name)
         assert a.dtype == dtype and a.shape == shape, name
     np.testing.assert_allclose(np.linalg.norm(rays.directions, axis=1), 1.0, atol=1e-6)
-    np.testing.assert_array_equal(rays.pixels % 1.0, 0.5)  # pixel centres
+    np.testing.assert_array_equal(rays.pixels % 1.0, 0.5)  # pixel centres (exact: integers + 0.5 in binary)
     assert (rays.pixels >= 0).all() and (rays.pixels[:, 0] < 1600).all() and (rays.pixels[:, 1] < 900).all()
     assert set(np.unique(rays.cameras)) == set(range(6))
     assert (rays.depths > 0.05).all() and rays.labels.max() <= 16
@@ -104,7 +104,7 @@ def test_dynamic_filter_drops_exactly_dynamic_labels_in_other_frames(fixture_wor
     assert (dynamic & other_frame).sum() > 500 and (dynamic & ~other_frame).sum() > 100
     assert (~dynamic & other_frame).sum() > 500
     expected = off.take(~(dynamic & other_frame))
-    for name in ("origins", "directions", "depths", "labels", "time_offsets", "cameras", "pixels"):
+    for name in ("origins", "directions", "depths", "labels", "time_offsets", "cameras", "pixels"):  # exact: copies
         np.testing.assert_array_equal(getattr(on, name), getattr(expected, name), err_msg=name)
     # the bicycle (Occ3D 2) is dynamic in the paper's tables but not in the filter set: it stays
     assert ((on.labels == 2) & (on.time_offsets != 0)).any()
@@ -119,7 +119,7 @@ def test_scene_edges_give_fewer_frames_never_duplicates(fixture_world, index):
     one = RayBuilder(index, fixture_world.root, RayConfig(horizon=0)).rays(2)
     assert set(one.time_offsets.tolist()) == {0}
     full = builder.rays(2)
-    np.testing.assert_array_equal(full.take(full.time_offsets == 0).depths, one.depths)
+    np.testing.assert_array_equal(full.take(full.time_offsets == 0).depths, one.depths)   # exact: the same rays
 
 
 def test_t0_rays_match_an_independent_projection(fixture_world, index):
@@ -155,6 +155,7 @@ def test_sample_rays_is_seeded_and_fixed_size(fixture_world, index):
     a = sample_rays(rays, 1000, np.random.default_rng(3))
     b = sample_rays(rays, 1000, np.random.default_rng(3))
     c = sample_rays(rays, 1000, np.random.default_rng(4))
+    # exact: the same draw (seed 3) twice, copies of the same rays
     assert len(a) == 1000 and np.array_equal(a.depths, b.depths) and not np.array_equal(a.depths, c.depths)
     few = rays.take(np.arange(10))
     assert len(sample_rays(few, 50, np.random.default_rng(0))) == 50  # with replacement when too few
@@ -178,7 +179,7 @@ def test_sqrt_balanced_sampling_shares_classes_by_the_root_of_their_counts():
     assert np.mean(balanced.labels == 4) == pytest.approx(np.sqrt(1000) / (np.sqrt(1000) + 300), abs=0.015)
     assert len(np.unique(balanced.depths)) == 2000                         # without replacement when there are enough
     again = sample_rays(rays, 2000, np.random.default_rng(0), "sqrt-balanced")
-    assert np.array_equal(balanced.depths, again.depths)
+    assert np.array_equal(balanced.depths, again.depths)                       # exact: the same draw, copies
     with pytest.raises(ValueError, match="ray sampling"):
         sample_rays(rays, 10, np.random.default_rng(0), "weighted")
 

@@ -22,7 +22,7 @@ def test_hand_made_confusion_and_ious():
     expected = np.zeros((18, 18), dtype=np.int64)
     for g, p in [(4, 4), (4, 4), (4, 11), (11, 11), (11, 17), (17, 17), (17, 4), (0, 0)]:
         expected[g, p] += 1
-    assert np.array_equal(hist, expected)
+    assert np.array_equal(hist, expected)                         # counts (integers)
 
     metric = OccupancyMetric()
     metric.update(PRED, GT)

@@ -59,4 +59,4 @@ def test_onnxruntime_gives_the_same_bits_on_every_run_at_four_threads(trained):
     first = predictor(sample.inputs)
     for _ in range(8):
         occ, dens = predictor(sample.inputs)
-        assert np.array_equal(occ, first[0]) and np.array_equal(dens, first[1])
+        assert np.array_equal(occ, first[0]) and np.array_equal(dens, first[1])   # exact: reruns (the property)

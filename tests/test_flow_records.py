@@ -120,7 +120,7 @@ def test_save_load_round_trip_and_version(tmp_path):
     assert path.exists()  # written under the exact name given
     back, = load_flow_records(path).values()
     assert back.sample_token == "tok" and back.version == FLOW_FORMAT_VERSION
-    for key, value in rec.arrays().items():
+    for key, value in rec.arrays().items():      # exact: written and read back
         assert np.array_equal(getattr(back, key), value) and getattr(back, key).dtype == value.dtype
     other = FlowRecord("empty")
     save_flow_records(tmp_path / "all.npz", [rec, other])
@@ -170,7 +170,7 @@ def test_record_drives_the_warp_to_the_box_at_t():
     logits[0][tuple(torch.as_tensor(body).T) + (CAR,)] = 3.0
     moves = PackedMoves.from_arrays(**flow_moves(rec, offsets=[0, 1]))
     out_d, _ = warp_volumes(density, logits, torch.tensor([0, 0]), moves, mover="nearest")
-    assert torch.equal(out_d[0], density[0])
+    assert torch.equal(out_d[0], density[0])                         # exact: nothing moves, a copy
     occupied = {tuple(v) for v in torch.nonzero(out_d[1] > 0.5).tolist()}
     body_t = voxels_in_box([10.2, -1.8, 1.2], [2.0, 4.0, 1.6], 0.0, margin_scale=1.0, margin_add=0.0)
     assert occupied == {tuple(v) for v in body_t.tolist()}
@@ -194,5 +194,5 @@ def test_precompute_flow_in_started_workers_writes_what_the_serial_loop_writes(p
     serial, workers = copies["serial"], copies["workers"]
     assert sorted(serial.files) == sorted(workers.files) and len(serial["sample_token"]) == len(index)
     assert len(serial["offset"]) > 0                                 # moving boxes: the records are not empty
-    for key in serial.files:
+    for key in serial.files:              # exact: the same function on the same inputs, in other processes
         np.testing.assert_array_equal(serial[key], workers[key], err_msg=key)

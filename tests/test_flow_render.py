@@ -76,7 +76,7 @@ def test_adjacent_frame_rays_see_the_car_where_it_was(mover):
             if warped_class == CAR:  # the (normalised) depth is the car's, not the wall's
                 hit_w, hit_p = out_w.depth / out_w.weight_sum, out_p.depth / out_p.weight_sum
                 assert (hit_w < 14.0).all() and (hit_p > 28.0).all(), (hit_w, hit_p)
-    # frame 0 is an untouched copy
+    # frame 0 is an untouched copy (exact)
     assert torch.equal(warped_d[1], density[0]) and torch.equal(warped_l[1], logits[0])
 
 

@@ -112,6 +112,7 @@ def test_nearest_round_trip_is_exact_for_cell_shifts():
     assert not torch.equal(d_t, density)
     back_box = voxels_in_box(CENTRE + shift, [2.0, 4.4, 2.0], 0.0)
     d_b, l_b = warp_volume(d_t, l_t, [BoxMove(back_box, np.linalg.inv(T), CAR)], mover="nearest")
+    # exact: whole-voxel moves land on voxel centres, far from any face, so values are copied, not mixed
     assert torch.equal(d_b, density) and torch.equal(l_b, logits)
 
 
@@ -141,6 +142,7 @@ def test_only_voxels_of_the_box_class_move_and_sources_are_cleared():
     density, logits = _scene([((98, 99, 4), (103, 102, 6), CAR, 0.9), ((98, 102, 4), (100, 103, 6), PED, 0.6),
                               ((150, 150, 4), (152, 152, 6), CAR, 0.9)])
     d_t, l_t = warp_volume(density, logits, [BoxMove(CAR_BOX, _translation(0.0, -4.0), CAR)], mover="nearest")
+    # exact: voxels that no box moves are copies
     assert torch.equal(d_t[98:100, 102:103, 4:6], density[98:100, 102:103, 4:6])  # pedestrian stays
     assert torch.equal(l_t[98:100, 102:103, 4:6], logits[98:100, 102:103, 4:6])
     assert torch.equal(d_t[150:152, 150:152], density[150:152, 150:152])  # car outside the box stays
@@ -183,6 +185,8 @@ def test_batched_warp_matches_single_warps_and_plain_copies():
     ped_box = voxels_in_box([-21.8, -22.6, 0.0], [1.6, 2.4, 1.2], 0.0)
     frames = [[], [BoxMove(CAR_BOX, _translation(1.2), CAR)], [], [BoxMove(ped_box, _translation(0.0, 0.4), PED)]]
     source = torch.tensor([0, 0, 1, 1])
+    # exact: the moves are whole voxels (1.2 m, 0.4 m), so every moved centre snaps onto a centre (weight 1) and the
+    # batched and the single warps copy the same values; frames without moves are copies
     for mover in ("idw", "nearest"):
         d_n, l_n = warp_volumes(density, logits, source, pack_moves(frames), mover=mover)
         assert d_n.shape == (4, *GRID.shape) and l_n.shape == (4, *GRID.shape, NUM_CLASSES)

@@ -112,7 +112,7 @@ def test_sweep_points_take_the_class_of_their_neighbours(labelled):
     dist, which = cKDTree(fx.static).query(cloud.xyz[static])
     on_static = dist < 1e-3                          # the fixture's static points, seen again by every sweep
     assert on_static.sum() > 12 * 2500
-    assert np.array_equal(cloud.label[static][on_static], map_lidarseg(fx.static_raw)[which[on_static]])
+    assert np.array_equal(cloud.label[static][on_static], map_lidarseg(fx.static_raw)[which[on_static]])  # class ids
     assert cloud.unlabelled_sweep_points == 0         # every sweep point was seen by a keyframe too
     assert (cloud.label[cloud.moving] != UNLABELLED).all() and len(cloud.moving) == len(sweeps) * 2 * 120
 

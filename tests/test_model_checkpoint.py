@@ -15,6 +15,7 @@ def test_round_trip_keeps_weights_config_and_extra(tmp_path):
     assert cfg2 == cfg and cfg2.threshold == 0.3
     assert not loaded.training
     sd = model.state_dict()
+    # exact: a save and a load copy the tensors (no arithmetic)
     assert all(torch.equal(v, sd[k]) for k, v in loaded.state_dict().items())
     assert extra2["step"] == 12 and torch.equal(extra2["optimizer"]["state"][0]["exp_avg"], torch.ones(3))
     raw = torch.load(path, weights_only=True)

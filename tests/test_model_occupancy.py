@@ -45,10 +45,18 @@ def test_forward_outputs_follow_the_contract(tiny):
     assert torch.allclose(out["depth_prob"].sum(2), torch.ones(2, 6, h, w), atol=1e-5)
     expected_k = scale_intrinsics_to_features(
         preprocess_images(images, K, cfg.input_size, cfg.image_mean, cfg.image_std)[1], 16)
+    # exact: forward runs these same two functions on the same tensors (same ops, same order)
     assert torch.equal(out["feature_intrinsics"], expected_k)
     assert torch.equal(out["occupancy"], fuse_occupancy(d, out["logits"], cfg.threshold))
     occ, dens = tiny.inference(images, K, T)                  # Φs only where σ ≥ τ: same fused result
-    assert torch.equal(dens, d) and torch.equal(occ, out["occupancy"])
+    assert torch.equal(dens, d)      # exact: the same ops on the same full grid in both (Φσ runs on every voxel)
+    # Φs runs on the occupied rows only in inference, on every row in forward: a matrix product over other row
+    # counts may round differently on other CPUs (~1e-6 of the logits), which can flip the argmax of a voxel whose
+    # two best classes are that close; every other voxel has the same class.
+    differ = occ != out["occupancy"]
+    top2 = out["logits"].topk(2, dim=-1).values
+    assert float(differ.float().mean()) < 1e-4
+    assert bool((top2[..., 0] - top2[..., 1])[differ].le(1e-4).all()) and torch.equal(occ == FREE, d < cfg.threshold)
     assert 0.2 < (occ != FREE).float().mean() < 0.8 and len(occ.unique()) >= 3
 
 
@@ -91,6 +99,7 @@ def test_same_seed_same_weights():
     a = create_model(get_preset("tiny"), seed=7).state_dict()
     b = create_model(get_preset("tiny"), seed=7).state_dict()
     c = create_model(get_preset("tiny"), seed=8).state_dict()
+    # exact: the same initialisation run twice from the same seed (same ops, same order)
     assert all(torch.equal(a[k], b[k]) for k in a)
     assert not all(torch.equal(a[k], c[k]) for k in a)
 
@@ -167,14 +176,16 @@ def test_voxel_mlp_trains_with_the_gradients_of_its_modules(rows):
     with torch.autocast("cpu", dtype=torch.bfloat16):
         assert "RowLinear" not in type(head(x.requires_grad_(True)).grad_fn).__name__
     head.eval()
-    with torch.no_grad():
+    with torch.no_grad():        # exact: in eval VoxelMLP.forward is Sequential.forward (the same modules run)
         assert torch.equal(head(x), torch.nn.Sequential.forward(head, x))
 
 
 def test_decoder_features_while_training_equal_the_out_of_place_ops():
     """voxel_features sums the fine points into the upsampled rows and rectifies them in one buffer while training
     (FineRows: no copy of every row, forward or backward); the values and every gradient are bitwise those of the
-    out-of-place ops that eval runs."""
+    out-of-place ops that eval runs, up to float32 rounding: FineRows's products and sums are those autograd runs,
+    but a CPU's kernels may order a product's sums differently for the transposed layouts (3.8e-6 on gradients of
+    magnitude ~30 on an AVX-512 AMD CPU, 0 on others)."""
     from occflownet.model.decoder import VoxelDecoder
 
     torch.manual_seed(0)
@@ -199,4 +210,6 @@ def test_decoder_features_while_training_equal_the_out_of_place_ops():
     fused, out_of_place = run(True), run(False)
     assert len(fused) == len(out_of_place) > 3
     for a, b in zip(fused, out_of_place):
-        torch.testing.assert_close(a, b, rtol=0, atol=0)
+        # float32 rounding: eps 1.2e-7 per operation, sums of at most M·s³ = 400 terms, cancellation inside a
+        # tensor, so relative to the tensor's largest value; a wrong op (mask, row, transpose) is off by O(1)
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5 * float(b.abs().max()))

@@ -17,6 +17,7 @@ def test_zeroes_exactly_the_dynamic_voxels_and_keeps_gradients_elsewhere():
     expected = torch.isin(labels, torch.tensor(DYNAMIC_FILTER_CLASSES))
     assert 0 < int(expected.sum()) < expected.numel()
     out = disocclude(density, logits)
+    # exact: disocclusion multiplies by 0 or 1 (a mask), which rounds nothing
     assert torch.equal(dynamic_mask(logits), expected)
     assert torch.all(out[expected] == 0)
     assert torch.equal(out[~expected], density[~expected])

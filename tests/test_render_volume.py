@@ -204,7 +204,7 @@ def test_numba_path_is_bit_identical_for_any_thread_count(stratified, uniform_mi
         out = render_rays(d, lg, origins, dirs, cfg, torch.Generator().manual_seed(3), volume)
         (out.depth.sum() + out.semantics.square().sum() + out.weight_sum.sum()).backward()
         results.append((out.depth, out.semantics, out.t_samples, d.grad, lg.grad))
-    for other in results[1:]:
+    for other in results[1:]:   # exact: the property tested (each sum runs in one thread, in one order)
         assert all(torch.equal(a, b) for a, b in zip(results[0], other))
 
 
@@ -229,7 +229,7 @@ def test_auto_lookup_without_numba_falls_back_to_grid_sample_with_a_warning(monk
     with pytest.warns(UserWarning, match="numba is not installed"):
         out = render_rays(density, logits, origins, dirs, RenderConfig(grid=SMALL), torch.Generator().manual_seed(1),
                           volume)
-    assert torch.equal(out.depth, expected.depth)
+    assert torch.equal(out.depth, expected.depth)            # exact: the fallback runs the same grid_sample path
 
 
 def test_batch_index_selects_the_volume():

@@ -23,6 +23,7 @@ def _trained_state(tmp_path, steps=2) -> TrainingState:
 
 
 def _assert_same_tensors(a: dict, b: dict):
+    """Exact: a save and a load copy the tensors (no arithmetic)."""
     assert set(a) == set(b)
     for k in a:
         assert torch.equal(a[k], b[k]), k

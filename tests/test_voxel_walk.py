@@ -5,6 +5,8 @@ import pytest
 from occflownet.voxel_walk import OUTSIDE, traverse, walk_rays
 
 
+# The walks are compared with the brute force exactly: visited voxels (booleans) of float64 rays in general position
+# (random; the axis-parallel ones exactly parallel), where a tie needs a ray within ~1e-14 of a voxel edge.
 def brute_force(origins, dirs, occupied, t_max, lower, vs):
     """Per ray: every voxel whose box the ray segment [0, t_max) enters, in order of entry, up to and including
     the first occupied one (slab test against each voxel separately)."""
