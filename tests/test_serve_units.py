@@ -21,7 +21,8 @@ from occflownet.serve.client import ServerNotReady, wait_ready
 from occflownet.serve.decode import ImageError, check_header, common_size, decode_image, image_header
 from occflownet.pictures import top_down
 from occflownet.serve.encode import NotAcceptable, encode, negotiate
-from occflownet.serve.limits import BodyLimitsMiddleware, InferenceGate, Saturated, Uploads
+from occflownet.serve.limits import (BodyLimitsMiddleware, BodyTimeout, InferenceGate, Saturated, ShuttingDown,
+                                     TooManyUploads, Uploads)
 from occflownet.serve.metrics import Metrics
 from occflownet.serve.settings import DEFAULT_MAX_QUEUE, ServeSettings, SettingsError, env_name
 
@@ -476,6 +477,87 @@ def test_gate_admission_and_retry_after():
         gate.leave()
         gate.admit()                                 # room again
         gate.shutdown()
+    asyncio.run(scenario())
+
+
+def test_retry_after_is_the_mean_slot_time_times_the_waiting_over_the_slots():
+    """Known answers with a clock the test sets: slots of 4 s then 9 s give the moving average 0.8·4 + 0.2·9 = 5 s;
+    with two slots and five requests waiting, Retry-After = ⌈5 × (5 + 1) / 2⌉ = 15; with two of the five computing
+    (three waiting), ⌈5 × (3 + 1) / 2⌉ = 10; a mean of 30 s caps it at 60."""
+    now = [0.0]
+
+    async def scenario():
+        gate = InferenceGate(max_inflight=2, max_queue=3, clock=lambda: now[0])
+        for seconds in (4.0, 9.0):
+            gate.admit()
+            async with gate.slot():
+                now[0] += seconds
+            gate.leave()
+        for _ in range(5):
+            gate.admit()
+        with pytest.raises(Saturated) as info:
+            gate.check()
+        assert info.value.retry_after == 15
+        assert gate.admitted == 5                                        # check() reserved nothing
+        held = [gate.slot(), gate.slot()]
+        for slot in held:
+            await slot.__aenter__()
+        assert gate.retry_after() == 10
+        for slot in held:
+            now[0] += 30.0
+            await slot.__aexit__(None, None, None)
+        # slots of 30 s and 60 s (both began at the same time): 0.8·(0.8·5 + 0.2·30) + 0.2·60 = 20 s
+        assert gate._mean_s == pytest.approx(20.0)
+        now[0] = 0.0
+        gate._mean_s = 30.0
+        assert gate.retry_after() == 60                                  # ⌈30 × 6 / 2⌉ = 90 → the cap
+        gate.shutdown()
+    asyncio.run(scenario())
+
+
+@pytest.mark.parametrize("cores, workers, threads, expected", [
+    (8, 1, 2, (2, 4)), (8, 1, None, (8, 1)), (8, 2, None, (4, 1)), (8, 2, 1, (1, 4)), (8, 4, 1, (1, 2)),
+    (3, 2, None, (1, 1)), (8, 16, None, (1, 1)), (16, 2, 3, (3, 2)),
+])
+def test_resolved_threads_and_slots_from_the_cores(monkeypatch, cores, workers, threads, expected):
+    """intra_op_threads = cores // workers unless given; max_inflight = max(1, cores // workers // threads)."""
+    import occflownet.serve.settings as settings_module
+
+    monkeypatch.setattr(settings_module, "available_cores", lambda: cores)
+    r = ServeSettings(workers=workers, intra_op_threads=threads).resolved()
+    assert (r.intra_op_threads, r.max_inflight) == expected
+    assert ServeSettings(workers=workers, intra_op_threads=threads, max_inflight=3).resolved().max_inflight == 3
+
+
+def test_uploads_are_counted_timed_and_drained():
+    """Uploads: the count bound, the deadline of a receive that waits (408), and the drain (new ones 503 at once,
+    waiting ones after the grace)."""
+    async def scenario():
+        uploads = Uploads(max_uploads=2, timeout_s=0.05)
+        uploads.enter()
+        uploads.enter()
+        with pytest.raises(TooManyUploads):
+            uploads.enter()
+        uploads.leave()
+        loop = asyncio.get_running_loop()
+        never = asyncio.Event()
+
+        async def stalled_receive():
+            await never.wait()
+
+        async def ready_receive():
+            return {"type": "http.request", "body": b"x", "more_body": False}
+
+        with pytest.raises(BodyTimeout):
+            await uploads.receive(stalled_receive, loop.time() + 0.05)
+        assert (await uploads.receive(ready_receive, loop.time() - 1))["body"] == b"x"   # a message ready wins
+        waiting = asyncio.ensure_future(uploads.receive(stalled_receive, loop.time() + 60))
+        await asyncio.sleep(0)
+        uploads.drain(grace=0.01)
+        with pytest.raises(ShuttingDown):
+            uploads.enter()
+        with pytest.raises(ShuttingDown):
+            await waiting
     asyncio.run(scenario())
 
 
