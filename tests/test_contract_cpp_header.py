@@ -66,6 +66,11 @@ def test_header_states_the_python_contract():
     assert f"kGridShape{{{{{', '.join(map(str, GRID.shape))}}}}};" in text
     assert f"kNumClasses = {len(CLASS_NAMES)};" in text and f"kFreeIndex = {FREE};" in text
     assert f"kAspectTolerance = {contract.ASPECT_TOLERANCE!r};" in text
+    assert f"kMaxCalibrationBytes = {contract.MAX_CALIBRATION_BYTES};" in text
+    assert f"kMaxCalibrationDepth = {contract.MAX_CALIBRATION_DEPTH};" in text
+    assert f"kMaxImageSide = {contract.MAX_IMAGE_SIDE};" in text
+    limit = re.search(r"kFloat32Limit = ([0-9.e+]+);", text)
+    assert limit and float(limit[1]) == contract.FLOAT32_LIMIT                  # the literal reads back exactly
     assert max(len(line) for line in text.splitlines()) <= 118
 
 

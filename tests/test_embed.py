@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from exported_models import FRAME, exported_tiny, frame_available, trained_tiny_checkpoint, workdir
+from test_calibration_faults import FAULTS
 
 REPO = Path(__file__).resolve().parents[1]
 BUILD = REPO / "embed" / "build"
@@ -275,6 +276,13 @@ def _break_model(src: Path, dst: Path, how: str) -> Path:
         calib = json.loads(props["default_calibration"].value)
         calib["cameras"]["CAM_BACK"]["cam2ego"][0][0] = 2.0
         props["default_calibration"].value = json.dumps(calib)
+    elif how == "nested-default-calibration":
+        deep = "[" * 2000 + "]" * 2000
+        props["default_calibration"].value = props["default_calibration"].value[:-1] + f', "x": {deep}}}'
+    elif how == "overflowing-default-calibration":
+        calib = json.loads(props["default_calibration"].value)
+        calib["cameras"]["CAM_FRONT_LEFT"]["intrinsic"][1][1] = 1e39
+        props["default_calibration"].value = json.dumps(calib)
     elif how == "input-renamed":
         old = proto.graph.input[0].name
         proto.graph.input[0].name = "image"
@@ -289,6 +297,9 @@ CONTRACT_CASES = {
     "no-cameras": "model metadata lacks cameras",
     "bad-default-calibration": "default_calibration: CAM_BACK cam2ego rotation is not a proper rotation",
     "input-renamed": "model has no input 'images' (has image, intrinsics, cam2ego)",
+    "nested-default-calibration": "default_calibration is nested deeper than 32 levels of arrays and objects",
+    "overflowing-default-calibration": "default_calibration: CAM_FRONT_LEFT intrinsic[1][1] must be finite in float32, "
+                                       "got 1e+39",
 }
 
 
@@ -388,6 +399,25 @@ def test_bad_input_exits_nonzero_naming_the_problem(embed_build, random_model, t
     assert proc.stderr.startswith("occflownet-run: error: ") and message in proc.stderr, proc.stderr
     assert_no_sanitizer_report(proc)
     assert not (tmp_path / "g.npy").exists()
+
+
+@needs_frame
+@pytest.mark.parametrize("name", sorted(FAULTS))
+def test_the_calibration_fault_battery_is_refused_as_in_python(embed_build, random_model, tmp_path, name):
+    """Each calibration of the fault battery (tests/test_calibration_faults.py: nesting 2,000 deep, 1e308 in an
+    intrinsic and a translation, booleans and strings as numbers, bad image sizes, over 1 MiB) is refused by the
+    program and by the C layer (occflownet_calibration_from_json) with the message Python gives, nothing written."""
+    calib = tmp_path / "calib.json"
+    calib.write_text(FAULTS[name][0](json.loads((FRAME / "calib.json").read_text())))
+    proc = run_program(embed_build["run_asan"], "--model", random_model, "--images", FRAME, "--calib", calib,
+                       "--out", tmp_path / "g.npy")
+    assert proc.returncode == 1, (proc.returncode, proc.stderr)
+    assert proc.stderr.startswith(f"occflownet-run: error: {calib}") and FAULTS[name][1] in proc.stderr, proc.stderr
+    assert_no_sanitizer_report(proc)
+    assert not (tmp_path / "g.npy").exists()
+    demo = run_program(embed_build["c_demo_asan"], random_model, calib, 1600, 900)
+    assert demo.returncode == 1 and FAULTS[name][1] in demo.stderr, demo.stderr
+    assert_no_sanitizer_report(demo)
 
 
 def test_missing_model_and_bad_usage(embed_build, tmp_path):

@@ -24,36 +24,97 @@ using nlohmann::json;
 [[noreturn]] void fail(Error::Code code, const std::string& message) { throw Error(code, message); }
 
 // ------------------------------------------------------------------------------------------- JSON helpers
-// Number matrix rows x cols (row-major) from a JSON array of arrays; Error naming `where` otherwise.
-template <std::size_t N>
-std::array<double, N> matrix(const json& value, int rows, int cols, const std::string& where) {
-    std::array<double, N> out{};
-    auto shape_error = [&] {
-        fail(Error::kInvalidArgument, where + " must be a " + std::to_string(rows) + "x" + std::to_string(cols) +
-                                          " array of numbers");
-    };
-    if (!value.is_array() || int(value.size()) != rows) shape_error();
-    for (int r = 0; r < rows; ++r) {
-        const json& row = value[r];
-        if (!row.is_array() || int(row.size()) != cols) shape_error();
-        for (int c = 0; c < cols; ++c) {
-            if (!row[c].is_number()) shape_error();
-            out[r * cols + c] = row[c].get<double>();
-            if (!std::isfinite(out[r * cols + c])) fail(Error::kInvalidArgument, where + " contains NaN or inf");
+// The deepest nesting of arrays and objects in JSON text (brackets inside strings do not count), found without
+// parsing or recursion (as occflownet.contract.calibration.json_depth); exact for valid JSON.
+int json_depth(const std::string& text) {
+    int depth = 0, deepest = 0;
+    bool in_string = false;
+    for (std::size_t i = 0; i < text.size(); ++i) {
+        const char ch = text[i];
+        if (in_string) {
+            if (ch == '\\') ++i;  // the escaped character cannot end the string
+            else if (ch == '"') in_string = false;
+        } else if (ch == '"') {
+            in_string = true;
+        } else if (ch == '[' || ch == '{') {
+            deepest = std::max(deepest, ++depth);
+        } else if (ch == ']' || ch == '}') {
+            --depth;
         }
     }
+    return deepest;
+}
+
+// Calibration JSON text -> its JSON value, refusing before it is parsed text of more than kMaxCalibrationBytes or
+// nested deeper than kMaxCalibrationDepth (nlohmann's parser sets no depth limit); Error naming `source`.
+json parse_calibration_text(const std::string& text, const std::string& source) {
+    if (text.size() > contract::kMaxCalibrationBytes)
+        fail(Error::kInvalidArgument, source + " is " + std::to_string(text.size()) + " bytes, over the limit of " +
+                                          std::to_string(contract::kMaxCalibrationBytes) + " bytes");
+    if (json_depth(text) > contract::kMaxCalibrationDepth)
+        fail(Error::kInvalidArgument, source + " is nested deeper than " +
+                                          std::to_string(contract::kMaxCalibrationDepth) +
+                                          " levels of arrays and objects");
+    json calib = json::parse(text, nullptr, false);
+    if (calib.is_discarded()) fail(Error::kInvalidArgument, source + ": not valid JSON");
+    return calib;
+}
+
+// `value` as it reads in JSON (true, "1266.4", 1e+308, [1000000000.0, 54]) for messages, shortened.
+std::string token(const json& value) {
+    std::string text;
+    if (value.is_number_float() && !std::isfinite(value.get<double>())) {
+        text = std::isnan(value.get<double>()) ? "nan" : value.get<double>() > 0 ? "inf" : "-inf";
+    } else if (value.is_array() && value.size() <= 4) {
+        for (const json& item : value) text += (text.empty() ? "[" : ", ") + token(item);
+        text = text.empty() ? "[]" : text + "]";
+    } else {
+        text = value.dump();
+    }
+    return text.size() <= 40 ? text : text.substr(0, 37) + "...";
+}
+
+// One JSON number -> double; Error naming `where` for a boolean, a string or anything not a number, and for a
+// number whose float32 is not finite (the model gets float32).
+double number(const json& value, const std::string& where) {
+    if (!value.is_number()) fail(Error::kInvalidArgument, where + " must be a JSON number, got " + token(value));
+    const double x = value.get<double>();
+    if (!(std::fabs(x) < contract::kFloat32Limit))
+        fail(Error::kInvalidArgument, where + " must be finite in float32, got " + token(value));
+    return x;
+}
+
+// Number matrix rows x cols (row-major) from a JSON array of arrays; Error naming `where` (and the entry).
+template <std::size_t N>
+std::array<double, N> matrix(const json& value, int rows, int cols, const std::string& where) {
+    const std::string shape = std::to_string(rows) + "x" + std::to_string(cols);
+    bool arrays = value.is_array() && int(value.size()) == rows;
+    for (int r = 0; arrays && r < rows; ++r) arrays = value[r].is_array();
+    if (!arrays) fail(Error::kInvalidArgument, where + " must be a " + shape + " array of numbers");
+    std::string lengths;
+    bool ragged = false;
+    for (int r = 0; r < rows; ++r) {
+        lengths += (r ? ", " : "") + std::to_string(value[r].size());
+        ragged = ragged || int(value[r].size()) != cols;
+    }
+    if (ragged) fail(Error::kInvalidArgument, where + " must be " + shape + ", got rows of [" + lengths + "]");
+    std::array<double, N> out{};
+    for (int r = 0; r < rows; ++r)
+        for (int c = 0; c < cols; ++c)
+            out[r * cols + c] =
+                number(value[r][c], where + "[" + std::to_string(r) + "][" + std::to_string(c) + "]");
     return out;
 }
 
 std::array<int, 2> image_size(const json& value, const std::string& where) {
-    if (!value.is_array() || value.size() != 2 || !value[0].is_number() || !value[1].is_number())
-        fail(Error::kInvalidArgument, where + " must be [width, height]");
+    if (!value.is_array() || value.size() != 2) fail(Error::kInvalidArgument, where + " must be [width, height]");
     std::array<int, 2> out{};
+    const double v[2] = {number(value[0], where + "[0]"), number(value[1], where + "[1]")};
     for (int i = 0; i < 2; ++i) {
-        double v = value[i].get<double>();
-        if (!(v >= 1 && v == std::floor(v) && v < 1e9))
-            fail(Error::kInvalidArgument, where + " must be two positive integers, got " + value.dump());
-        out[i] = int(v);
+        if (!(v[i] >= 1 && v[i] <= contract::kMaxImageSide && v[i] == std::floor(v[i])))
+            fail(Error::kInvalidArgument, where + " must be two integers from 1 to " +
+                                              std::to_string(contract::kMaxImageSide) + ", got " + token(value));
+        out[i] = int(v[i]);
     }
     return out;
 }
@@ -143,11 +204,13 @@ std::vector<std::string> strings(const json& v, const char* key, const std::stri
     return out;
 }
 
-// metadata_props -> JSON values; a value that is not JSON (a foreign key) stays a plain string.
+// metadata_props -> JSON values; a value that is not JSON (a foreign key), or is nested deeper than
+// kMaxCalibrationDepth arrays and objects (never parsed), stays a plain string.
 json decode_metadata(const std::vector<std::pair<std::string, std::string>>& props) {
     json meta = json::object();
     for (const auto& [name, text] : props) {
-        json value = json::parse(text, nullptr, false);
+        json value = json_depth(text) <= contract::kMaxCalibrationDepth ? json::parse(text, nullptr, false)
+                                                                         : json(json::value_t::discarded);
         meta[name] = value.is_discarded() ? json(text) : value;
     }
     return meta;
@@ -242,11 +305,12 @@ std::array<int, 2> parse_input_size(const json& meta, const std::string& source)
 // The default calibration, validated like any calibration for the model's cameras (its errors are kContract).
 Calibration parse_default_calibration(const json& meta, const std::vector<std::string>& cameras,
                                       const std::string& source) {
-    const json& calib = require(meta, key::kDefaultCalibration, source);
+    json calib = require(meta, key::kDefaultCalibration, source);
     const std::string where = source + ": " + key::kDefaultCalibration;
-    if (!calib.is_object() || !calib.contains("image_size"))
-        fail(Error::kContract, where + " must be calibration JSON with image_size [w, h]");
     try {
+        if (calib.is_string()) calib = parse_calibration_text(calib.get<std::string>(), where);  // not decoded
+        if (!calib.is_object() || !calib.contains("image_size"))
+            fail(Error::kContract, where + " must be calibration JSON with image_size [w, h]");
         return calibration_from_json(calib, cameras, where);
     } catch (const Error& e) {
         fail(Error::kContract, e.what());
@@ -522,9 +586,7 @@ ModelInfo check_model(Ort::Session& session, const std::string& source) {
 // ------------------------------------------------------------------------------------------- Calibration
 Calibration parse_calibration(const std::string& json_text, const std::vector<std::string>& cameras,
                               const std::string& source) {
-    json calib = json::parse(json_text, nullptr, false);
-    if (calib.is_discarded()) fail(Error::kInvalidArgument, source + ": not valid JSON");
-    return calibration_from_json(calib, cameras, source);
+    return calibration_from_json(parse_calibration_text(json_text, source), cameras, source);
 }
 
 void Calibration::cam2ego_f32(float* out) const {
@@ -558,6 +620,10 @@ void Calibration::intrinsics_for_size(int width, int height, float* out, int red
             K[2] += 0.5 * s - 0.5;
             K[5] += 0.5 * s - 0.5;
         }
+        for (int i = 0; i < 9; ++i)
+            if (!(std::fabs(K[i]) < contract::kFloat32Limit))
+                fail(Error::kInvalidArgument, cameras[c] + " intrinsic rescaled for a " + std::to_string(width) + "x" +
+                                                  std::to_string(height) + " image is not finite in float32");
         for (int i = 0; i < 9; ++i) out[c * 9 + i] = float(K[i]);
     }
 }

@@ -100,7 +100,11 @@ std::vector<std::uint8_t> read_file(const std::string& path) {
     return bytes;
 }
 
-std::string read_text(const std::string& path) {
+std::string read_text(const std::string& path, std::size_t max_bytes) {
+    struct stat st {};
+    if (::stat(path.c_str(), &st) == 0 && S_ISREG(st.st_mode) && std::size_t(st.st_size) > max_bytes)
+        fail(Error::kInvalidArgument, path + " is " + std::to_string(st.st_size) + " bytes, over the limit of " +
+                                          std::to_string(max_bytes) + " bytes");
     auto bytes = read_file(path);
     return std::string(bytes.begin(), bytes.end());
 }

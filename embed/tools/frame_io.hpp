@@ -11,7 +11,9 @@
 namespace occflownet::io {
 
 std::vector<std::uint8_t> read_file(const std::string& path);   // Error(kIO) naming the file
-std::string read_text(const std::string& path);
+// A text file of at most max_bytes: Error(kInvalidArgument) naming the file and its size when it is larger (checked
+// before it is read).
+std::string read_text(const std::string& path, std::size_t max_bytes);
 
 // <folder>/<camera>.jpg (or .jpeg, .png; first found) per camera, in `cameras` order; Error listing what is missing.
 std::vector<std::string> find_camera_images(const std::string& folder, const std::vector<std::string>& cameras);

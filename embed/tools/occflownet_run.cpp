@@ -123,7 +123,9 @@ int run(const Args& a) {
     // Calibration for W0 x H0 as stored, scaled to the decoded W x H.
     occflownet::Calibration calib =
         a.calib.empty() ? info.default_calibration
-                        : occflownet::parse_calibration(occflownet::io::read_text(a.calib), info.cameras, a.calib);
+                        : occflownet::parse_calibration(
+                              occflownet::io::read_text(a.calib, occflownet::contract::kMaxCalibrationBytes),
+                              info.cameras, a.calib);
     std::vector<float> K(occflownet::kCameras * 9), T(occflownet::kCameras * 16);
     calib.intrinsics_for_size(W0, H0, K.data(), n);
     calib.cam2ego_f32(T.data());

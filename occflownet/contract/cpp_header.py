@@ -7,7 +7,7 @@ keys and calibration tolerances, rendered from this package's definitions so tha
 Run from the repository root (or give ``--out``). The header is checked into ``embed/``, so building the C++ needs
 no Python; ``tests/test_contract_cpp_header.py`` fails while the checked-in file differs from :func:`render_header`.
 Every value comes from :mod:`occflownet.contract` (``INPUTS``, ``OUTPUTS``, ``METADATA_KEYS``,
-``REQUIRED_METADATA_KEYS``, ``CONTRACT_VERSION``, ``NUM_CAMERAS``, the calibration tolerances) and
+``REQUIRED_METADATA_KEYS``, ``CONTRACT_VERSION``, ``NUM_CAMERAS``, the calibration tolerances and limits) and
 :mod:`occflownet.occ3d` (grid shape, classes, free index). Torch-free: numpy and the standard library only.
 """
 from __future__ import annotations
@@ -19,7 +19,9 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from occflownet.contract.calibration import ASPECT_TOLERANCE, ORTHONORMAL_TOLERANCE, SINGULAR_TOLERANCE
+from occflownet.contract.calibration import (ASPECT_TOLERANCE, FLOAT32_LIMIT, MAX_CALIBRATION_BYTES,
+                                             MAX_CALIBRATION_DEPTH, MAX_IMAGE_SIDE, ORTHONORMAL_TOLERANCE,
+                                             SINGULAR_TOLERANCE)
 from occflownet.contract.metadata import METADATA_KEYS, REQUIRED_METADATA_KEYS
 from occflownet.contract.tensors import CONTRACT_VERSION, INPUTS, NUM_CAMERAS, OUTPUTS, TensorSpec
 from occflownet.files import atomic_path
@@ -144,6 +146,13 @@ def render_header() -> str:
         f"inline constexpr double kAspectTolerance = {float(ASPECT_TOLERANCE)!r};",
         f"inline constexpr double kOrthonormalTolerance = {float(ORTHONORMAL_TOLERANCE)!r};",
         f"inline constexpr double kSingularTolerance = {float(SINGULAR_TOLERANCE)!r};",
+        "// Calibration JSON limits: its largest size in bytes, its deepest nesting of arrays and objects, the largest",
+        "// width or height an image_size may state, and the magnitude below which a number (a double) rounds to a",
+        "// finite float32 (every matrix entry must be below it).",
+        f"inline constexpr std::size_t kMaxCalibrationBytes = {int(MAX_CALIBRATION_BYTES)};",
+        f"inline constexpr int kMaxCalibrationDepth = {int(MAX_CALIBRATION_DEPTH)};",
+        f"inline constexpr int kMaxImageSide = {int(MAX_IMAGE_SIDE)};",
+        f"inline constexpr double kFloat32Limit = {float(FLOAT32_LIMIT)!r};",
         "",
         "}  // namespace occflownet::contract",
     ]

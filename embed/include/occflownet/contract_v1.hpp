@@ -70,5 +70,12 @@ inline constexpr auto kOptional = std::array<const char*, 2>{{kPreset, kOccflown
 inline constexpr double kAspectTolerance = 0.01;
 inline constexpr double kOrthonormalTolerance = 0.001;
 inline constexpr double kSingularTolerance = 1e-09;
+// Calibration JSON limits: its largest size in bytes, its deepest nesting of arrays and objects, the largest
+// width or height an image_size may state, and the magnitude below which a number (a double) rounds to a
+// finite float32 (every matrix entry must be below it).
+inline constexpr std::size_t kMaxCalibrationBytes = 1048576;
+inline constexpr int kMaxCalibrationDepth = 32;
+inline constexpr int kMaxImageSide = 65535;
+inline constexpr double kFloat32Limit = 3.4028235677973366e+38;
 
 }  // namespace occflownet::contract

@@ -70,17 +70,21 @@ struct Calibration {
     // naming the camera (the images were cropped or padded in a way the calibration does not describe).
     // reduction n > 1: the width x height images were decoded at 1/n (a JPEG at reduced scale, the contract's rule):
     // the intrinsics are then scaled by s = 1/n exactly, f' = f / n, c' = (c + 0.5) / n - 0.5, in double before
-    // the one cast to float (as occflownet.contract's Calibration.arrays_for).
+    // the one cast to float (as occflownet.contract's Calibration.arrays_for); an entry beyond float32 after the
+    // rescaling -> Error(kInvalidArgument) naming the camera.
     void intrinsics_for_size(int width, int height, float* out, int reduction = 1) const;
 };
 
 // Calibration JSON -> Calibration for `cameras` (in that order). The JSON is
 //   {"cameras": {"CAM_FRONT": {"intrinsic": 3x3, "cam2ego": 4x4, "image_size": [w, h] (optional)}, ...},
 //    "image_size": [w, h] (optional, for cameras without their own)}; other keys are ignored.
-// Checked: every camera present, shapes, finite numbers, intrinsic non-singular with last row [0, 0, 1] and
-// positive focal lengths, cam2ego last row [0, 0, 0, 1] and a proper rotation (orthonormal within
-// kOrthonormalTolerance, det > 0), image sizes positive integers. Error(kInvalidArgument) names `source`, the camera
-// and the field.
+// Checked before parsing: at most contract::kMaxCalibrationBytes bytes, nested at most kMaxCalibrationDepth arrays
+// and objects deep. Then: every camera present, shapes, every entry a JSON number (not a boolean, not a string)
+// whose float32 is finite (|x| < kFloat32Limit), intrinsic non-singular with last row [0, 0, 1] and positive focal
+// lengths, cam2ego last row [0, 0, 0, 1] and a proper rotation (orthonormal within kOrthonormalTolerance, det > 0),
+// image sizes integers 1..kMaxImageSide. The rules and messages of occflownet.contract (docs/contracts.md):
+// Error(kInvalidArgument) names `source`, the camera and the field down to the entry ("CAM_FRONT intrinsic[0][0]
+// must be a JSON number, got true").
 Calibration parse_calibration(const std::string& json_text, const std::vector<std::string>& cameras,
                               const std::string& source = "calibration");
 
