@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import signal
 import threading
@@ -52,9 +53,12 @@ def shutdown_signals(loop, on_signal):
 
 
 def watch_parent(poll_s: float = PARENT_POLL_S) -> threading.Event:
-    """Start the parent watch of this process (module docstring) → an Event that stops it when set."""
+    """Start the parent watch of this process (module docstring) → an Event that stops it when set. The parent is
+    the process that started this one (multiprocessing's record of it in a spawned worker), so a parent that died
+    before the watch began is noticed too."""
     stop = threading.Event()
-    parent = os.getppid()
+    started_by = multiprocessing.parent_process()
+    parent = started_by.pid if started_by is not None else os.getppid()
 
     def watch():
         while not stop.wait(poll_s):

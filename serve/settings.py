@@ -21,7 +21,8 @@ import string in fresh processes), so ``occflownet serve`` writes its settings i
 | ``OCCFLOWNET_SHUTDOWN_TIMEOUT_S`` | shutdown_timeout_s | 20: seconds SIGTERM waits for requests in flight     |
 | ``OCCFLOWNET_WORKERS``            | workers            | 1 (only used for the defaults above)                 |
 | ``OCCFLOWNET_ORT_SPIN``           | ort_spin           | 0: ORT worker threads sleep between runs             |
-| ``OCCFLOWNET_PROVIDERS``          | providers          | CPUExecutionProvider (comma-separated list)          |
+| ``OCCFLOWNET_PROVIDERS``          | providers          | CPUExecutionProvider (comma-separated; each must be  |
+|                                   |                    | available in this onnxruntime, checked at load time) |
 | ``OCCFLOWNET_WARMUP``             | warmup             | 1: one inference before /readyz turns ready          |
 | ``OCCFLOWNET_UI``                 | ui                 | 1: the browser page at /ui (0: the API only)         |
 | ``OCCFLOWNET_DOCS``               | docs               | 0: no /docs, /redoc (1: on; they load from a CDN)    |

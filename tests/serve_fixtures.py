@@ -206,6 +206,41 @@ def real_frame_files() -> tuple[dict, bytes]:
     return files, (FRAME_DIR / "calib.json").read_bytes()
 
 
+def frame_request_files(cameras=CAMERAS) -> dict:
+    """The shared real frame's JPEGs of ``cameras`` and its calib.json as ``files=`` of ``POST /v1/occupancy``."""
+    files = {c: (f"{c}.jpg", (FRAME_DIR / f"{c}.jpg").read_bytes(), "image/jpeg") for c in cameras}
+    files["calibration"] = ("calib.json", (FRAME_DIR / "calib.json").read_bytes(), "application/json")
+    return files
+
+
+def post_frame(server: str, accept: str = "application/json", cameras=CAMERAS):
+    """``POST /v1/occupancy`` of the real frame (httpx, JSON answers parsed) → (response, round trip in ms)."""
+    import time
+
+    import httpx
+
+    t0 = time.perf_counter()
+    r = httpx.post(f"{server}/v1/occupancy", files=frame_request_files(cameras), headers={"Accept": accept},
+                   timeout=60)
+    if accept == "application/json" and r.status_code == 200:
+        r.json()
+    return r, (time.perf_counter() - t0) * 1e3
+
+
+def send_from_page(page, cameras=CAMERAS, calibration: bool = True) -> dict:
+    """In the server page (a selenium driver on ``/ui``): choose the real frame's images (and calib.json), press
+    the button, wait for the outcome → the page's ``occPage.last`` (ok, status, timings, ...)."""
+    from browser import wait_for
+    from selenium.webdriver.common.by import By
+
+    page.execute_script("window.occPage.last = null; document.getElementById('images').value = '';")
+    page.find_element(By.ID, "images").send_keys("\n".join(str(FRAME_DIR / f"{c}.jpg") for c in cameras))
+    if calibration:
+        page.find_element(By.ID, "calibration").send_keys(str(FRAME_DIR / "calib.json"))
+    page.find_element(By.ID, "run").click()
+    return wait_for(page, "window.occPage.last", timeout=120)
+
+
 def npy_bytes(array: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, array)

@@ -71,16 +71,18 @@ def gauge(base: str, name: str) -> float:
     return metric_samples(httpx.get(f"{base}/metrics", timeout=10).text).get((name, ()), -1.0)
 
 
-def wait_for_uploads(base: str, count: int, timeout: float = 20) -> None:
-    """Until the server counts ``count`` request bodies being received (the stalled clients are inside the app)."""
+def wait_for_requests(base: str, count: int, timeout: float = 20) -> None:
+    """Until the server has ``count`` requests in flight besides the scrape that asks (the stalled clients are inside
+    the app, their bodies being read)."""
     deadline = time.monotonic() + timeout
-    while gauge(base, "occflownet_uploads_in_progress") != count:
-        assert time.monotonic() < deadline, f"the server never counted {count} uploads"
+    while gauge(base, "occflownet_http_requests_in_flight") - 1 != count:
+        assert time.monotonic() < deadline, f"the server never had {count} requests in flight"
         time.sleep(0.02)
 
 
 def error_of(answer: bytes) -> tuple[int, dict, dict]:
     """A raw HTTP/1.1 answer → (status, lower-cased headers, JSON body)."""
+    assert answer, "no answer"
     head, _, body = answer.partition(b"\r\n\r\n")
     lines = head.decode("latin-1").split("\r\n")
     headers = dict(line.lower().split(": ", 1) for line in lines[1:])
@@ -101,8 +103,9 @@ def test_a_valid_request_is_served_while_five_uploads_stall(model_path):
         wait_ready(base)
         stalled = [stalled_upload(port_of(base)) for _ in range(5)]
         try:
-            wait_for_uploads(base, 5)
+            wait_for_requests(base, 5)
             assert_grid(post(base))
+            assert gauge(base, "occflownet_uploads_in_progress") == 5               # still stalled
             assert gauge(base, "occflownet_inference_queue_depth") == 0
         finally:
             for sock in stalled:
@@ -148,14 +151,14 @@ def test_more_uploads_than_the_limit_get_503_busy(model_path):
     with running_server(create_app(settings)) as base:
         wait_ready(base)
         stalled = [stalled_upload(port_of(base)) for _ in range(2)]
-        wait_for_uploads(base, 2)
+        wait_for_requests(base, 2)
         r = post(base)
         assert r.status_code == 503 and r.json()["error"]["code"] == "busy", r.text
         assert r.headers["retry-after"] == "1" and r.headers["connection"] == "close"
         assert httpx.get(f"{base}/healthz").status_code == 200             # bodiless requests are not uploads
         for sock in stalled:
             sock.close()
-        wait_for_uploads(base, 0)
+        wait_for_requests(base, 0)
         assert_grid(post(base))
         samples = metric_samples(httpx.get(f"{base}/metrics").text)
         assert samples[("occflownet_rejected_total", (("reason", "uploads"),))] == 1
@@ -185,7 +188,7 @@ def test_sigterm_ends_stalled_uploads_and_finishes_the_work_in_flight(model_path
             busy.start()
             assert computing.wait(30)
             stalled = [stalled_upload(port) for _ in range(5)]
-            wait_for_uploads(base, 5)
+            wait_for_requests(base, 6)                                      # and the one computing
             os.kill(os.getpid(), signal.SIGTERM)
             deadline = time.monotonic() + 20
             outcome["stalled"] = [read_answer(s, max(0.1, deadline - time.monotonic())) for s in stalled]
@@ -227,9 +230,13 @@ def test_cli_sigterm_exits_with_stalled_clients_connected(model_path, tmp_path, 
     stalled = []
     try:
         wait_ready(base, 60, proc)
+        deadline = time.monotonic() + 60                    # every worker warmed up (the minimum over the workers)
+        while gauge(base, "occflownet_model_ready") != 1:
+            assert time.monotonic() < deadline, "the workers never all became ready"
+            time.sleep(0.05)
         assert_grid(post(base))
         stalled = [stalled_upload(port) for _ in range(5)]
-        wait_for_uploads(base, 5)
+        wait_for_requests(base, 5)
         proc.send_signal(signal.SIGTERM)
         try:
             proc.wait(30)                                   # the target: ≤ 30 s; it takes about 1 s (the drain)
@@ -270,7 +277,10 @@ def _running(pid: int) -> bool:
     return state != "Z"
 
 
-def test_kill_9_of_the_supervisor_stops_its_workers(model_path, tmp_path):
+@pytest.mark.parametrize("when", ["serving", "starting"])
+def test_kill_9_of_the_supervisor_stops_its_workers(model_path, tmp_path, when):
+    """``kill -9`` of the supervisor of two workers, once they serve, or as soon as both processes exist (a worker
+    may still be loading its model then): the workers shut down by themselves and the port closes."""
     port = free_port()
     env = os.environ | {"PROMETHEUS_MULTIPROC_DIR": str(tmp_path / "metrics")}
     proc = subprocess.Popen(_serve_cmd("--model", str(model_path), "--port", str(port), "--workers", "2",
@@ -278,7 +288,8 @@ def test_kill_9_of_the_supervisor_stops_its_workers(model_path, tmp_path):
                             env=env, cwd=REPO, stderr=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
     workers = []
     try:
-        wait_ready(f"http://127.0.0.1:{port}", 60, proc)
+        if when == "serving":
+            wait_ready(f"http://127.0.0.1:{port}", 60, proc)
         deadline = time.monotonic() + 30
         while len(workers := _children(proc.pid)) < 2:
             assert time.monotonic() < deadline, f"workers not found: {workers}"
@@ -364,7 +375,7 @@ def test_a_provider_onnxruntime_lacks_stops_start_up(model_path, provider, why):
         pytest.skip(f"{provider} is available here")
     env = os.environ | {"OCCFLOWNET_PROVIDERS": provider}
     proc = subprocess.run(_serve_cmd("--model", str(model_path), "--port", str(free_port())), capture_output=True,
-                          text=True, timeout=60, cwd=REPO, env=env)
+                          text=True, timeout=30, cwd=REPO, env=env)
     assert proc.returncode == 2
     available = ", ".join(ort.get_available_providers())
     assert proc.stderr.splitlines() == [f"occflownet serve: OCCFLOWNET_PROVIDERS / --providers: {provider} ({why}); "

@@ -12,6 +12,7 @@ address (a port outside 0..65535, or one already in use, ends it with one line) 
 unreadable or invalid file, or an execution provider this onnxruntime lacks, ends it with a line naming it); exit
 status 2 for each. SIGTERM waits at most ``shutdown_timeout_s`` for the requests in flight.
 """
+import contextlib
 import os
 import socket
 import sys
@@ -91,7 +92,7 @@ def _serve(args, settings, resolved) -> int:
     import uvicorn
 
     from occflownet.serve.app import create_app
-    from occflownet.serve.metrics import multiprocess_dir
+    from occflownet.serve.metrics import multiprocess_dir, multiprocess_enabled
     from occflownet.serve.model_runtime import ModelLoadError, ModelRuntime
 
     try:
@@ -106,7 +107,9 @@ def _serve(args, settings, resolved) -> int:
                   timeout_graceful_shutdown=settings.shutdown_timeout_s)
     try:
         if resolved.workers == 1:
-            uvicorn.run(create_app(settings, runtime=runtime), **common)
+            # a PROMETHEUS_MULTIPROC_DIR of the environment puts the metrics there: the folder is made and cleaned
+            with multiprocess_dir() if multiprocess_enabled() else contextlib.nullcontext():
+                uvicorn.run(create_app(settings, runtime=runtime), **common)
         else:
             del runtime  # each worker process loads its own session from the environment
             os.environ.update(settings.to_env())
