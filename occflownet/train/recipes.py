@@ -66,7 +66,7 @@ _RENDERING = {
     "free_ramp_steps": 400, "ray_sampling": "sqrt-balanced", "point_semantics_weight": 1.0,
     "point_density_weight": 1.0, "free_prior_weight": 2.0, "render_depth_weight": 0.0, "flow_mover": "nearest",
 }
-_LADDER = "docs/results.md#the-paper-s-ablation-ladder-on-one-world"
+_LADDER = "docs/results.md#the-papers-ablation-ladder-on-one-world"
 _FITTING = "docs/results.md#fitting-one-world"
 _QUICKSTART = "docs/results.md#the-quickstart"
 _RAYS = "LiDAR rays rendered (2D)"
