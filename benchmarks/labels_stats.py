@@ -1,4 +1,4 @@
-"""The label pipeline's figures (docs/labels.md): label statistics of the real Occ3D sample, of the real nuScenes
+"""The label pipeline's figures (docs/data.md): label statistics of the real Occ3D sample, of the real nuScenes
 frame labelled geometry-only, and of synthetic worlds labelled by the pipeline; the synthetic labels against the
 world's geometric truth; and the labeller's speed on a 40-keyframe scene.
 

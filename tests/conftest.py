@@ -15,7 +15,7 @@ def synth_params() -> dict:
 
 @pytest.fixture(scope="session")
 def synth_root(tmp_path_factory):
-    """(root Path, version str) of a small synthetic dataset in the nuScenes layout (see docs/synth.md):
+    """(root Path, version str) of a small synthetic dataset in the nuScenes layout (see docs/data.md):
     1 scene (``scene-0001``, in both the train and val splits) × 6 keyframes, 160×90 images, LiDAR, lidarseg,
     boxes and Occ3D labels (gts/<scene>/<sample token>/labels.npz)."""
     from occflownet.synth.generate import DEFAULT_VERSION, generate

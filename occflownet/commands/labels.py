@@ -1,5 +1,5 @@
 """`occflownet labels`: Occ3D ground truth (semantics, mask_lidar, mask_camera) from a root's LiDAR, boxes and
-lidarseg (:func:`occflownet.labels.label_root`; docs/labels.md).
+lidarseg (:func:`occflownet.labels.label_root`; docs/data.md).
 
 The options are the fields of :class:`occflownet.labels.LabelRun` (what is read and written) and of
 :class:`occflownet.labels.LabelConfig` (how the labels are made; its rules' thresholds in their own section)
@@ -18,7 +18,7 @@ def add_arguments(parser):
     parser.add_argument("--dataroot", required=True, help="nuScenes-format root (holds <version>/*.json)")
     add_options(parser, LabelRun)
     add_options(parser, LabelConfig, skip=CONFIG_SKIP,
-                groups=[(RULES, "the thresholds of the rules (docs/labels.md); the settings are recorded in "
+                groups=[(RULES, "the thresholds of the rules (docs/data.md); the settings are recorded in "
                                 "gts/labels.json, and a rerun with others needs --overwrite")])
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 

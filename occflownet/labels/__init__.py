@@ -1,4 +1,4 @@
-"""Occ3D ground truth from LiDAR by Occ3D's own definition (``occflownet labels``; docs/labels.md).
+"""Occ3D ground truth from LiDAR by Occ3D's own definition (``occflownet labels``; docs/data.md).
 
 For every keyframe of a nuScenes-format root: accumulate the scene's LiDAR sweeps in the keyframe's ego frame
 (points in annotated boxes moved by their boxes), give each voxel the majority class of its points (``semantics``),

@@ -1,4 +1,4 @@
-"""The settings of the label pipeline (``occflownet labels``), one typed dataclass; ``docs/labels.md`` explains
+"""The settings of the label pipeline (``occflownet labels``), one typed dataclass; ``docs/data.md`` explains
 each rule beside Occ3D's published definition."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from occflownet.options import check_fields, option
 
 UNLABELLED = 255        # point class of a sweep point that no rule could label
 IGNORED_RAW = (0, 31)   # raw lidarseg noise and vehicle.ego: not surfaces of the scene, dropped
-RULES = "labelling rules"  # the --help section of the rules' thresholds (docs/labels.md)
+RULES = "labelling rules"  # the --help section of the rules' thresholds (docs/data.md)
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """The synthetic driving world behind `occflownet synth`: one procedural scene geometry (flat ground with a class
 raster + yaw-oriented boxes) ray cast into six camera images and a 32-beam LiDAR (keyframes and the sweeps between
 them), written in the exact nuScenes layout and then labelled by the same pipeline a user runs on real recordings
-(``occflownet.labels``). See docs/synth.md.
+(``occflownet.labels``). See docs/data.md.
 
 Public entry points: ``generate`` / ``SynthConfig`` (write and label a dataset), ``build_world`` / ``WorldConfig`` (scene geometry),
 ``render_keyframe`` / ``render_sweep`` / ``SensorRig`` (sensors in memory).

@@ -2,7 +2,7 @@
 
 Images, LiDAR and the geometric truth come from one geometry, so they should. Two measurements, used by
 ``tests/test_synth_consistency.py`` (thresholds) and ``benchmarks/synth_consistency.py`` (the figures in
-docs/synth.md):
+docs/results.md):
 
 - ``lidar_label_agreement(root, version)``: read back from the files on disk, each keyframe LiDAR point moved LiDAR →
   ego with its calibrated_sensor, its mapped lidarseg class against the class of the voxel it falls in in the
