@@ -1,7 +1,8 @@
 """Prediction for one set of six camera images: the image folder, the frame as the inference paths decode it, outputs.
 
 Inputs: a folder with one image per camera (``<CAMERA>.jpg``/``.jpeg``/``.png``) → uint8 [6, H, W, 3] RGB in
-``CAMERAS`` order (:func:`load_frame`: JPEGs at reduced scale for the model's input size), and with its calibration
+``CAMERAS`` order (:func:`load_frame`: JPEGs at reduced scale for the model's input size, images of another size
+resized to the common one, as the server does), and with its calibration
 → the model's inputs (:meth:`Frame.inputs`, :func:`occflownet.runtime.frame_inputs`); the model is an
 :class:`occflownet.runtime.Predictor` (ONNX or torch). Outputs: occupancy uint8 [200, 200, 16] ([x, y, z] of the ego
 frame, 17 = free) and density float32 [200, 200, 16], written as one .npz, and per-class counts. Shipping wing: this
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from occflownet.contract import decode_reduction, decode_rgb, image_header
+from occflownet.contract import common_size, decode_reduction, decode_rgb, image_header, reduced_size, resize_rgb
 from occflownet.occ3d import CAMERAS, FREE, GRID
 from occflownet.runtime import ModelInputs, frame_inputs
 
@@ -34,19 +35,27 @@ def decode_image(data: bytes, name: str = "image", reduction: int = 1) -> np.nda
 @dataclass(frozen=True)
 class Frame:
     """Six camera images as an inference path decodes them: ``images`` uint8 [6, h, w, 3] RGB in ``CAMERAS``
-    order, decoded at 1/``reduction`` from files of ``stored_size`` (W, H) (the contract's reduced-scale JPEG
-    rule, :func:`occflownet.contract.decode_reduction`; 1 = whole)."""
+    order at one size (w, h); per camera, ``sizes`` the (w, h) of its file as stored and ``reductions`` the n it
+    was decoded at, 1/n (the contract's reduced-scale JPEG rule, :func:`occflownet.contract.decode_reduction`;
+    1 = whole). An image whose decoded size is not (w, h) was resized to it
+    (:func:`occflownet.contract.resize_rgb`)."""
 
     images: np.ndarray
-    stored_size: tuple[int, int]
-    reduction: int
+    sizes: tuple[tuple[int, int], ...]
+    reductions: tuple[int, ...]
+
+    @property
+    def reduction(self) -> int:
+        """The n every camera was decoded at (1/n); ValueError when they differ."""
+        if len(set(self.reductions)) != 1:
+            raise ValueError(f"the cameras were decoded at different scales {list(self.reductions)}")
+        return self.reductions[0]
 
     def inputs(self, calib: dict) -> ModelInputs:
-        """The model's inputs for this frame (a batch of one) with calibration JSON ``calib`` (for the stored size
-        or one of its aspect ratio): the intrinsics for the decoded images, scaled by 1/``reduction`` exactly
-        (:func:`occflownet.runtime.frame_inputs`)."""
-        return frame_inputs(self.images, calib, sizes=[self.stored_size] * len(self.images),
-                            reductions=[self.reduction] * len(self.images))
+        """The model's inputs for this frame (a batch of one) with calibration JSON ``calib`` (for each camera's
+        stored size or one of its aspect ratio): intrinsics rescaled from the stored size by 1/n and to (w, h) in
+        one step (:func:`occflownet.runtime.frame_inputs`)."""
+        return frame_inputs(self.images, calib, sizes=self.sizes, reductions=self.reductions)
 
 
 def find_camera_images(folder: str | Path) -> dict[str, Path]:
@@ -68,9 +77,11 @@ def find_camera_images(folder: str | Path) -> dict[str, Path]:
 
 
 def load_frame(folder: str | Path, input_size: tuple[int, int] | None = None) -> Frame:
-    """Six camera images of ``folder`` (all the same size) as the inference paths decode them for a model whose
-    network input is ``input_size`` [H, W] (JPEGs at reduced scale, :func:`occflownet.contract.decode_reduction`);
-    ``input_size=None`` decodes every image whole."""
+    """Six camera images of ``folder`` as every inference path decodes them for a model whose network input is
+    ``input_size`` [H, W]: each JPEG at its own reduced scale (:func:`occflownet.contract.decode_reduction`; PNGs
+    and, with ``input_size=None``, every image whole), then any image whose decoded size differs from the one most
+    of them have resized to it (:func:`occflownet.contract.common_size`, :func:`~occflownet.contract.resize_rgb`),
+    as the server does. ValueError naming the file that cannot be decoded."""
     blobs = [(p.read_bytes(), str(p)) for p in find_camera_images(folder).values()]
     headers = []
     for data, name in blobs:
@@ -79,21 +90,27 @@ def load_frame(folder: str | Path, input_size: tuple[int, int] | None = None) ->
         except ValueError as exc:
             raise ValueError(f"{name}: not a decodable JPEG/PNG image ({exc})") from None
     reductions = [decode_reduction(hd, input_size) for hd in headers]
-    sizes = {(hd.width, hd.height, n) for hd, n in zip(headers, reductions)}
-    if len(sizes) != 1:
-        detail = ", ".join(f"{c}: {hd.width}x{hd.height} {hd.format}" for c, hd in zip(CAMERAS, headers))
-        raise ValueError(f"{folder}: camera images differ in size ({detail}); all six must match")
-    images = [decode_image(data, name, n) for (data, name), n in zip(blobs, reductions)]
-    if len({im.shape for im in images}) != 1:
-        detail = ", ".join(f"{c}: {im.shape[1]}x{im.shape[0]}" for c, im in zip(CAMERAS, images))
-        raise ValueError(f"{folder}: camera images differ in size ({detail}); all six must match")
-    return Frame(np.stack(images), (headers[0].width, headers[0].height), reductions[0])
+    decoded = [reduced_size(hd.width, hd.height, n) for hd, n in zip(headers, reductions)]
+    w, h = common_size(decoded)
+    images = np.empty((len(blobs), h, w, 3), np.uint8)
+    for i, ((data, name), n, size) in enumerate(zip(blobs, reductions, decoded)):
+        rgb = decode_image(data, name, n)
+        if (rgb.shape[1], rgb.shape[0]) != size:
+            raise ValueError(f"{name}: decoded size {rgb.shape[1]}x{rgb.shape[0]} disagrees with its header's "
+                             f"{headers[i].width}x{headers[i].height} at 1/{n}")
+        resize_rgb(rgb, (w, h), out=images[i])
+    return Frame(images, tuple((hd.width, hd.height) for hd in headers), tuple(reductions))
 
 
 def load_image_folder(folder: str | Path) -> np.ndarray:
-    """Six camera images of ``folder`` → uint8 [6, H, W, 3] RGB in ``CAMERAS`` order, decoded whole (all the same
-    size)."""
-    return load_frame(folder).images
+    """Six camera images of ``folder``, all of one size, → uint8 [6, H, W, 3] RGB in ``CAMERAS`` order, decoded
+    whole (images of different sizes: :func:`load_frame`, whose intrinsics follow the resize). ValueError naming
+    the sizes when they differ."""
+    frame = load_frame(folder)
+    if len(set(frame.sizes)) != 1:
+        detail = ", ".join(f"{c}: {w}x{h}" for c, (w, h) in zip(CAMERAS, frame.sizes))
+        raise ValueError(f"{folder}: camera images differ in size ({detail}); all six must match")
+    return frame.images
 
 
 # ----------------------------------------------------------------------------------------------- outputs

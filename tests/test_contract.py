@@ -316,3 +316,31 @@ def test_sessions_refuse_a_model_that_breaks_the_contract(tmp_path):
     with pytest.raises(ContractError, match="not-v1.onnx: model has no input 'intrinsics'"):
         create_session(path)
     assert create_session(path, check_contract=False).get_inputs()[0].name == "images"
+
+
+# ---------------------------------------------------------------- images of different sizes in one frame
+
+def test_common_size_is_the_most_common_ties_to_the_earliest_camera():
+    from occflownet.contract import common_size
+
+    assert common_size([(800, 450), (1600, 900), (800, 450), (800, 450), (1600, 900), (1600, 900)]) == (800, 450)
+    assert common_size([(1600, 900), (800, 450), (800, 450), (1600, 900), (640, 360), (800, 450)]) == (800, 450)
+    assert common_size([(640, 360), (800, 450), (800, 450), (640, 360), (1, 1), (2, 2)]) == (640, 360)
+
+
+def test_resize_rgb_copies_shrinks_by_area_and_enlarges_linearly():
+    import cv2
+
+    from occflownet.contract import resize_rgb
+
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)
+    out = np.zeros((30, 40, 3), np.uint8)
+    assert resize_rgb(rgb, (40, 30), out) is out and np.array_equal(out, rgb)        # same size: the pixels
+    np.testing.assert_array_equal(resize_rgb(rgb, (16, 12)),                          # 2.5x down: area average
+                                  cv2.resize(rgb, (16, 12), interpolation=cv2.INTER_AREA))
+    big = resize_rgb(rgb, (100, 75))
+    np.testing.assert_array_equal(big, cv2.resize(rgb, (100, 75), interpolation=cv2.INTER_LINEAR))
+    assert not np.array_equal(big, cv2.resize(rgb, (100, 75), interpolation=cv2.INTER_AREA))
+    with pytest.raises(ValueError, match="out has shape"):
+        resize_rgb(rgb, (20, 15), np.zeros((15, 21, 3), np.uint8))

@@ -161,7 +161,7 @@ def test_decoded_pixels_and_intrinsics_equal_python(embed_build, random_model, t
     the real frame at half scale (tiny: n = 2), and the calibration gives the same float32 intrinsics (1/2 rule)."""
     _, got = cpp_run(embed_build["run"], random_model, FRAME, FRAME / "calib.json", tmp_path)
     frame = python_frame(random_model, FRAME)
-    assert frame.reduction == 2 and frame.stored_size == (1600, 900)
+    assert frame.reductions == (2,) * 6 and frame.sizes == ((1600, 900),) * 6
     assert got["images"].shape == frame.images.shape == (6, 450, 800, 3)
     assert np.array_equal(got["images"], frame.images)
     K, _ = python_calibration(FRAME / "calib.json", 1600, 900, reduction=2)

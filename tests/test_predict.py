@@ -1,15 +1,18 @@
-"""`occflownet predict`: the torch-free ONNX path, the torch paths, their agreement, outputs and errors."""
+"""`occflownet predict`: the torch-free ONNX path, the torch paths, their agreement (on a trained model whose grid
+has occupied voxels), the same inputs and grid as the server, outputs and errors."""
+import io
 import json
+import shutil
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
-from exported_models import FRAME, SEED, exported_tiny, frame_available
+from exported_models import FRAME, SEED, exported_tiny, exported_trained_tiny, frame_available, trained_tiny_checkpoint
 from occflownet.export.parity import compare
 from occflownet.cli import main
-from occflownet.occ3d import CLASS_COLORS, GRID
+from occflownet.occ3d import CAMERAS, CLASS_COLORS, FREE, GRID
 from occflownet.contract import calibration_arrays
 from occflownet.pictures import top_down
 from occflownet.predict import load_image_folder
@@ -55,6 +58,32 @@ def test_random_init_torch_and_onnx_agree_on_the_real_frame(onnx_prediction, tmp
     a, b = np.load(out), np.load(onnx_prediction / "grid.npz")
     case = compare(a["occupancy"], a["density"], b["occupancy"], b["density"], 0.35, "cli", ())
     assert case.ok, case.describe()
+
+
+def _occupied(occupancy: np.ndarray) -> float:
+    return float((occupancy != FREE).mean())
+
+
+@needs_frame
+def test_trained_torch_and_onnx_agree_on_the_real_frame(tmp_path, capsys):
+    """`predict --checkpoint` (torch) and `predict --model` (its export, onnxruntime) on a trained model whose grid
+    has occupied voxels of several classes (1.5 % on the real frame): the same class everywhere except where σ is
+    within float noise of τ, the densities within 1e-5 (measured 8.6e-7; different kernels: a tolerance, not
+    equality)."""
+    path = exported_trained_tiny()[0]
+    outs = {}
+    for name, args in (("torch", ["--checkpoint", str(trained_tiny_checkpoint())]), ("onnx", ["--model", str(path)])):
+        outs[name] = tmp_path / f"{name}.npz"
+        rc = main(["predict", *args, "--images", str(FRAME), "--calib", str(FRAME / "calib.json"),
+                   "--out", str(outs[name])])
+        assert rc == 0, capsys.readouterr().err
+    a, b = np.load(outs["torch"]), np.load(outs["onnx"])
+    assert 0.005 < _occupied(a["occupancy"]) < 0.2, _occupied(a["occupancy"])      # a grid worth comparing
+    assert len(np.unique(a["occupancy"])) >= 3                                    # free + at least two classes
+    differ = a["occupancy"] != b["occupancy"]
+    near = np.abs(a["density"] - exported_trained_tiny()[2].cfg.threshold) < 1e-5      # where a flip is float noise
+    assert not (differ & ~near).any(), f"{int((differ & ~near).sum())} voxels away from τ differ"
+    assert float(np.abs(a["density"] - b["density"]).max()) <= 1e-5
 
 
 @needs_frame
@@ -148,7 +177,8 @@ def test_jpegs_are_decoded_at_the_scale_the_graph_would_keep():
     from occflownet.predict import load_frame
 
     frame = load_frame(FRAME, (160, 288))
-    assert frame.reduction == 2 and frame.stored_size == (1600, 900) and frame.images.shape == (6, 450, 800, 3)
+    assert frame.reductions == (2,) * 6 and frame.sizes == ((1600, 900),) * 6
+    assert frame.images.shape == (6, 450, 800, 3)
     assert load_frame(FRAME, (256, 704)).reduction == 1 and load_frame(FRAME).images.shape == (6, 900, 1600, 3)
     assert decode_reduction(ImageHeader("png", 1600, 900, 33), (160, 288)) == 1
     assert decode_reduction(ImageHeader("jpeg", 3200, 1800, 0), (160, 288)) == 4
@@ -162,6 +192,96 @@ def test_jpegs_are_decoded_at_the_scale_the_graph_would_keep():
     K_whole, _ = calibration_arrays(json.loads((FRAME / "calib.json").read_text()), 1600, 900)
     np.testing.assert_allclose(K[:, :2, :2], K_whole[:, :2, :2] / 2, rtol=1e-6)
     np.testing.assert_allclose(K[:, :2, 2], (K_whole[:, :2, 2] + 0.5) / 2 - 0.5, rtol=1e-6)
+
+
+def _png_and_five_jpegs(folder):
+    """The real frame with CAM_FRONT as a lossless PNG of the same 1600x900 size and five JPEGs, and calib.json."""
+    import cv2
+
+    from occflownet.contract import decode_rgb
+
+    folder.mkdir()
+    for cam in CAMERAS:
+        data = (FRAME / f"{cam}.jpg").read_bytes()
+        if cam == "CAM_FRONT":
+            assert cv2.imwrite(str(folder / "CAM_FRONT.png"), decode_rgb(data)[:, :, ::-1])
+        else:
+            (folder / f"{cam}.jpg").write_bytes(data)
+    shutil.copy(FRAME / "calib.json", folder / "calib.json")
+    return folder
+
+
+def _server_inputs(model, folder):
+    """The model inputs the server builds for the six files of ``folder`` and its calib.json, by its own functions
+    in its order (serve/routers/occupancy.py: headers, the 1/n of each, the frame's size and calibration, then each
+    image decoded into its slice of the tensor)."""
+    from occflownet.serve.decode import check_header, decode_image, decode_reduction
+    from occflownet.serve.model_runtime import ModelRuntime
+    from occflownet.serve.settings import ServeSettings
+
+    runtime = ModelRuntime.load(model, ServeSettings(model_path=str(model), intra_op_threads=1))
+    files = {cam: next(folder.glob(f"{cam}.*")).read_bytes() for cam in CAMERAS}
+    headers = [check_header(cam, files[cam], 1 << 24) for cam in CAMERAS]
+    reductions = [decode_reduction(h, runtime.metadata.input_size) for h in headers]
+    frame = runtime.frame((folder / "calib.json").read_bytes(), [(h.width, h.height) for h in headers], reductions)
+    images = np.empty(frame.image_shape, np.uint8)
+    for i, cam in enumerate(CAMERAS):
+        decode_image(cam, files[cam], 1 << 24, images[i], reductions[i])
+    return frame.inputs(images)
+
+
+@needs_frame
+def test_a_png_among_jpegs_gets_the_servers_inputs(tmp_path):
+    """CAM_FRONT.png and five JPEGs of the same 1600x900 size: the PNG is decoded whole, the JPEGs at 1/2 (tiny),
+    and the PNG is resized to their 800x450 with its intrinsics for that size, as the server does: the same
+    images, intrinsics and cam2ego, exactly (the same decoders, resize and rescaling run on the same bytes)."""
+    from occflownet.contract import decode_rgb, resize_rgb
+    from occflownet.predict import load_frame
+
+    folder = _png_and_five_jpegs(tmp_path / "mixed")
+    model = exported_tiny()[0]
+    frame = load_frame(folder, exported_tiny()[2].cfg.input_size)
+    assert frame.reductions == (1, 2, 2, 2, 2, 2) and frame.sizes == ((1600, 900),) * 6
+    assert frame.images.shape == (6, 450, 800, 3)
+    whole = decode_rgb((folder / "CAM_FRONT.png").read_bytes())
+    np.testing.assert_array_equal(frame.images[0], resize_rgb(whole, (800, 450)))
+    ours = frame.inputs(json.loads((folder / "calib.json").read_text()))
+    theirs = _server_inputs(model, folder)
+    for name in ("images", "intrinsics", "cam2ego"):
+        np.testing.assert_array_equal(getattr(ours, name), getattr(theirs, name), err_msg=name)
+    K, _ = calibration_arrays(json.loads((FRAME / "calib.json").read_text()), 800, 450)    # 1600x900 → 800x450
+    np.testing.assert_allclose(ours.intrinsics[0], K, rtol=1e-6)
+
+
+@needs_frame
+def test_predict_and_the_server_give_the_same_grid_for_a_png_among_jpegs(tmp_path, capsys):
+    """The same six files (a PNG among five JPEGs) through `occflownet predict --model` and `POST /v1/occupancy`
+    on a trained model (occupied voxels of several classes): the same grid. Exact: both run the same inputs through
+    onnxruntime sessions with the same options and one thread, so the same kernels in the same order."""
+    from serve_fixtures import wait_app_ready
+    from starlette.testclient import TestClient
+
+    from occflownet.serve.app import create_app
+    from occflownet.serve.settings import ServeSettings
+
+    folder = _png_and_five_jpegs(tmp_path / "mixed")
+    model = exported_trained_tiny()[0]
+    out = tmp_path / "grid.npz"
+    rc = main(["predict", "--model", str(model), "--images", str(folder), "--calib", str(folder / "calib.json"),
+               "--out", str(out), "--threads", "1"])
+    assert rc == 0, capsys.readouterr().err
+    ours = np.load(out)["occupancy"]
+    files = {cam: (p.name, p.read_bytes(), "image/png" if p.suffix == ".png" else "image/jpeg")
+             for cam, p in ((cam, next(folder.glob(f"{cam}.*"))) for cam in CAMERAS)}
+    files["calibration"] = ("calib.json", (folder / "calib.json").read_bytes(), "application/json")
+    app = create_app(ServeSettings(model_path=str(model), intra_op_threads=1, max_inflight=1))
+    with TestClient(app) as client:
+        wait_app_ready(client, timeout=120)
+        r = client.post("/v1/occupancy", files=files, headers={"Accept": "application/x-npy"})
+    assert r.status_code == 200, r.text[:500]
+    theirs = np.load(io.BytesIO(r.content))
+    assert 0.005 < _occupied(ours) < 0.2 and len(np.unique(ours)) >= 3, _occupied(ours)
+    np.testing.assert_array_equal(ours, theirs)
 
 
 def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:

@@ -18,10 +18,15 @@
   small) and filters it with the same triangle filter. Training decodes whole images (its data loaders are not
   an inference path); the difference is the one between keeping every n-th pixel and averaging n x n pixels
   before the same filter.
+- **Images of different sizes in one frame** (:func:`common_size`, :func:`resize_rgb`): the model takes one
+  [6, H, W, 3] tensor, so the inference paths decode each image (at its own 1/n) and resize the ones not at the
+  size most of the decoded images have; the intrinsics of a resized image follow by the pixel-centre rule.
 """
 from __future__ import annotations
 
 import struct
+from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -117,6 +122,33 @@ def decode_reduction(header: ImageHeader, input_size: tuple[int, int] | None) ->
         return 1
     step = crop_window(header.height, header.width, tuple(input_size))[3]
     return max(n for n in JPEG_REDUCTIONS if n <= step)
+
+
+def common_size(sizes: Sequence[tuple[int, int]]) -> tuple[int, int]:
+    """The (w, h) of a frame's image tensor when its decoded images (``sizes``, (w, h) in camera order) differ: the
+    size most of them have, ties to the earliest camera. The others are resized to it (:func:`resize_rgb`)."""
+    counts = Counter(tuple(s) for s in sizes)
+    best = max(counts.values())
+    return next(tuple(s) for s in sizes if counts[tuple(s)] == best)
+
+
+def resize_rgb(rgb: np.ndarray, size: tuple[int, int], out: np.ndarray | None = None) -> np.ndarray:
+    """A decoded image uint8 [h, w, 3] at ``size`` (w', h') → uint8 [h', w', 3] (into ``out`` when given):
+    unchanged when it has that size, else ``cv2.resize`` with INTER_AREA when it has more pixels (shrinking),
+    INTER_LINEAR otherwise. Its intrinsics follow by the pixel-centre rule with s = w'/w, h'/h
+    (:meth:`occflownet.contract.calibration.Calibration.arrays_for`, ``size``)."""
+    import cv2
+
+    w, h = size
+    out = np.empty((h, w, 3), np.uint8) if out is None else out
+    if out.shape != (h, w, 3):
+        raise ValueError(f"out has shape {list(out.shape)}, not {[h, w, 3]}")
+    if rgb.shape == out.shape:
+        out[...] = rgb
+    else:
+        shrink = rgb.shape[0] * rgb.shape[1] > h * w
+        cv2.resize(rgb, (w, h), dst=out, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    return out
 
 
 def reduced_size(width: int, height: int, reduction: int) -> tuple[int, int]:
