@@ -145,7 +145,8 @@ def test_calibration_json_is_what_calibration_arrays_reads_back():
     (lambda c: c["cameras"]["CAM_FRONT"]["intrinsic"][0].__setitem__(0, -5.0), "CAM_FRONT intrinsic focal"),
     (lambda c: c["cameras"]["CAM_BACK"]["cam2ego"].__setitem__(3, [0, 0, 1, 1]), "CAM_BACK cam2ego last row"),
     (lambda c: c["cameras"]["CAM_BACK"]["cam2ego"][0].__setitem__(0, 1.1), "CAM_BACK cam2ego rotation"),
-    (lambda c: c["cameras"]["CAM_BACK_LEFT"]["cam2ego"][0].__setitem__(1, float("nan")), r"CAM_BACK_LEFT cam2ego\[0\]\[1\] must be finite in float32, got nan"),
+    (lambda c: c["cameras"]["CAM_BACK_LEFT"]["cam2ego"][0].__setitem__(1, float("nan")),
+     r"CAM_BACK_LEFT cam2ego\[0\]\[1\] must be finite in float32, got nan"),
     (lambda c: c.__setitem__("image_size", [480]), "calibration image_size must be"),
     (lambda c: c["cameras"]["CAM_BACK"].__setitem__("image_size", [0, 5]), "CAM_BACK image_size must be"),
 ])
