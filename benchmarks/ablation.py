@@ -9,7 +9,7 @@ Usage (the data first, once):
 
 Every row trains `tiny` with the same seed and step budget on split `all` of the train root, evaluates the EMA
 checkpoint on split `all` of the val root (mIoU with the camera mask, RayIoU, static/dynamic mIoU) and appends a
-JSON line to ``<out>/results.jsonl``; the table is printed at the end (markdown, for docs/ablation.md).
+JSON line to ``<out>/results.jsonl``; the table is printed at the end (markdown, for docs/results.md).
 Rows already in results.jsonl are skipped, so the study can be resumed (one ``--out`` per seed and per ``--extra``:
 the records are keyed by row). ``--extra`` adds the same ``occflownet train`` options to every row.
 """

@@ -5,7 +5,7 @@
 A typical nuScenes keyframe has ~20 dynamic boxes in the grid range (cars dominate); the scene here has 14 cars,
 3 pedestrians, 2 trucks and a bus, each filled with predicted voxels of its class, moved into 6 temporal frames
 (t = ±1..±3) at a few m/s. Prints best-of-``--repeat`` times (the machine may be shared); record them in
-docs/flow.md.
+docs/results.md.
 """
 from __future__ import annotations
 

@@ -4,8 +4,8 @@
 
 For each run (``RUN_DIR/checkpoints/last.pt``, EMA weights) and a few validation keyframes spread over the split,
 prints the percentage of voxels whose argmax class is in ``occ3d.DYNAMIC_FILTER_CLASSES``: over all voxels, over
-voxels with σ ≥ τ, and over camera-visible voxels. docs/ablation.md uses it to show that the dynamic ray filter +
-disocclusion (ablation row 5) stop the model from predicting those classes at all.
+voxels with σ ≥ τ, and over camera-visible voxels: whether the dynamic ray filter + disocclusion (ablation row 5)
+stop the model from predicting those classes at all.
 """
 from __future__ import annotations
 

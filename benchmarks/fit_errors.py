@@ -14,7 +14,7 @@ Prints, over every keyframe of the world, inside ``mask_camera`` (EMA weights, t
 - geometry IoU by τ;
 - for the t = 0 training rays of ``--keyframes`` by class of their point: the rendered opacity, the share of the
   light stopped before depth − 0.6 m, within ±0.6 m and after depth + 0.6 m, the median rendered-depth error
-  (depth Σ w_i t_i minus the LiDAR distance) and the median σ of the voxel holding the point (docs/ablation.md:
+  (depth Σ w_i t_i minus the LiDAR distance) and the median σ of the voxel holding the point (docs/results.md:
   a 2D model whose light passes through the cars and stops behind them has not carved the road, it has carved
   the cars).
 """

@@ -8,7 +8,7 @@ Rows: ``density`` (the official reading: σ per metre, scaled by ``--density-sca
 occupied voxels) and ``opacity`` (σ = the share of the light a voxel stops, at 0.5, 0.9, 0.99). Columns: median
 weight sum (and the share of rays below 0.5), median rendered depth − LiDAR depth (Σ w t, and Σ w t ÷ Σ w), median
 |error|, and the share of rays that render their LiDAR class. A reading under which the labels render the LiDAR
-depth is one whose optimum the labels can be; docs/ablation.md quotes the table.
+depth is one whose optimum the labels can be; docs/results.md quotes the figures.
 """
 from __future__ import annotations
 

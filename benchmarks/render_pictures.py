@@ -1,4 +1,4 @@
-"""What a trained model renders, beside the LiDAR labels it was trained on (docs/render.md): for one keyframe and one
+"""What a trained model renders, beside the LiDAR labels it was trained on (docs/results.md): for one keyframe and one
 camera, the rendered depth, opacity and semantics through every ``--step``-th pixel, and the LiDAR points of that
 camera (their depth and class), plus the per-ray figures at the LiDAR pixels (the training rays of t = 0).
 

@@ -5,7 +5,7 @@ at first, raised up to 32 MiB by what the process frees) with a fresh ``mmap`` a
 heap's top is also returned once more than the trim threshold lies free there. Each training step allocates and
 frees the same tensors of tens of MiB (``[640000, 16]`` float32 is 41 MiB: the decoder's rows of one sample), so
 every step faulted their pages in again and the kernel zeroed them: an element-wise pass over such a tensor took
-3-4x as long as over memory already mapped (docs/training.md, "Where a step's time goes").
+3-4x as long as over memory already mapped (docs/results.md, "Training speed").
 
 :func:`reuse_freed_memory` raises both thresholds for this process, so those tensors come from the heap and
 their pages stay mapped between steps. The cost: memory freed at the peak stays with the process until it exits

@@ -476,7 +476,7 @@ def test_density_logit_clip_renders_at_the_edge_and_keeps_the_gradient():
     assert official.render_density(outputs["density"], outputs) is outputs["density"]
 
 
-FOOTPRINT_OPTIONS = {   # the fitting recipe of docs/ablation.md (its free prior reads every σ), and a gradient floor
+FOOTPRINT_OPTIONS = {   # the recommended rendering (docs/training.md; its free prior reads every σ), a gradient floor
     "free_beyond_grid": True, "free_before_point": True, "free_stretch": "points", "box_line_of_sight": True,
     "ray_sampling": "sqrt-balanced", "point_semantics_weight": 1.0, "point_density_weight": 1.0,
     "free_prior_weight": 2.0, "density_grad_floor": 6.0}

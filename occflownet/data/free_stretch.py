@@ -1,4 +1,4 @@
-"""The free stretch in front of a ray's LiDAR point: where ``--free-before-point`` (beyond the paper, docs/render.md)
+"""The free stretch in front of a ray's LiDAR point: where ``--free-before-point`` (beyond the paper, docs/training.md)
 stops rendering a camera ray as free space. Distances in metres along the ray from its origin (the camera centre).
 
 Two rules (``occflownet.choices.FREE_STRETCH_RULES``; ``RayConfig.free_stretch``):
@@ -7,7 +7,7 @@ Two rules (``occflownet.choices.FREE_STRETCH_RULES``; ``RayConfig.free_stretch``
   A fixed margin is not enough: a ray meeting the road (or a wall) at a shallow angle runs inside its 0.4 m voxel
   layer for metres before its point (55 % of the rays cross a labelled voxel before depth - 0.6 m on the fitting
   world, 4-5 % before this end). But on a surface seen head-on it leaves the last fifth of the ray unconstrained,
-  and that is where a 2D-trained model puts its fog (docs/ablation.md).
+  and that is where a 2D-trained model puts its fog (docs/results.md).
 - ``"points"`` (:func:`point_clearance_ends`): up to where the ray first enters a voxel within one voxel of a LiDAR
   point of its own frame (the 3 × 3 × 3 neighbourhood of a voxel holding a point: the trilinear lookup of a sample
   outside those voxels reads no voxel that holds a point). The points themselves say where surfaces are: head-on,

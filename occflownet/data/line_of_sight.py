@@ -6,7 +6,7 @@ from the LiDAR and sees at its own timestamp, so the point can be hidden from it
 keyframe (it moved). Such a ray tells the renderer "free" through voxels the labels call occupied. On the fitting
 world 2–4 % of the t = 0 rays pass more than a metre through a labelled car before their point, and the rays of
 the six temporal frames crossing a car of the keyframe outnumber the rays that end on cars three to one
-(docs/ablation.md). Dropping them (``RayConfig.box_line_of_sight``, beyond the paper) is a data-side filter: it
+(docs/data.md). Dropping them (``RayConfig.box_line_of_sight``, beyond the paper) is a data-side filter: it
 needs the boxes, not the model's predicted classes, as the official dynamic filter does.
 
 Frames: rays and boxes in one ego frame (the current keyframe's). Boxes are ``EgoBoxes`` (centre, nuScenes

@@ -322,7 +322,7 @@ class RayBuilder:
 
     @staticmethod
     def _beyond_grid(f: FrameHits, to_current: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray, int]:
-        """Beyond-grid rays of one frame (beyond the paper; docs/ablation.md): its camera rays whose LiDAR point
+        """Beyond-grid rays of one frame (beyond the paper; docs/data.md): its camera rays whose LiDAR point
         lies outside the grid of the current ego frame, from cameras inside it. The grid is convex, so such a ray
         leaves it before reaching the point and never comes back: every voxel it crosses is free (at time t).
         Training rays end inside the grid (as the official code filters them), so without these the free space in

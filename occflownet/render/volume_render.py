@@ -32,10 +32,10 @@ a hand-written backward (``numba_render``), and ``"grid_sample"``, plain autogra
 for CUDA ones.
 
 ``density_scale`` defaults to 1.0, the official behaviour (σ ∈ [0, 1] used directly as a density per metre).
-With it a fully occupied voxel has optical depth 0.4 and lets ~67 % of the light through: see docs/render.md.
+With it a fully occupied voxel has optical depth 0.4 and lets ~67 % of the light through: see docs/training.md.
 
 ``sigma_is`` says how σ is read. ``"density"`` (default, official): σ is the extinction per metre, as above.
-``"opacity"`` (beyond the paper, docs/render.md): σ is the share of the light a voxel stops over one voxel length,
+``"opacity"`` (beyond the paper; docs/tried.md): σ is the share of the light a voxel stops over one voxel length,
 so a voxel can be opaque: each voxel's σ becomes the extinction ``-ln(1 - min(σ, OPACITY_CAP)) / voxel_size``
 before the lookups (``opacity_to_extinction``); everything after (trilinear lookup, weights, ``density_scale``)
 is unchanged. ``RenderOutput.sigma`` then holds the interpolated extinction.
@@ -66,7 +66,7 @@ def opacity_to_extinction(opacity: torch.Tensor, voxel_size: float) -> torch.Ten
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """Ray rendering settings; defaults are the official OccFlowNet values (docs/render.md)."""
+    """Ray rendering settings; defaults are the official OccFlowNet values (docs/training.md)."""
 
     near: float = 0.05              # metres along the ray
     far: float = 40.0
