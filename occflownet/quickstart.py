@@ -35,10 +35,10 @@ class QuickstartConfig:
 
     out: str = option("quickstart", "folder for the world, the run, the model and the pictures")
     scenes: int = option(6, "synthetic scenes (the last one is the val split); more, shorter scenes generalise "
-                                 "better than few long ones at the same cost (docs/training.md)", minimum=2)
+                                 "better than few long ones at the same cost (docs/results.md#the-quickstart)", minimum=2)
     frames: int = option(8, "keyframes per scene", minimum=1)
     preset: str = option("tiny", "model preset; small (tiny with a denser lifting) takes 2.1x as long a step, so it "
-                                 "needs a longer --train-minutes (docs/training.md)", choices=PRESET_NAMES)
+                                 "needs a longer --train-minutes (docs/results.md#the-quickstart)", choices=PRESET_NAMES)
     recipe: str = option("quickstart", "training recipe (`occflownet recipes`): quickstart = 3D labels inside the "
                                        "camera mask and rendered LiDAR rays of the current frame; quickstart-3d = "
                                        "the labels alone, the cheapest step", choices=RECIPE_NAMES)

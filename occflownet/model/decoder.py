@@ -69,7 +69,7 @@ class RowLinear(torch.autograd.Function):
     over WEIGHT_GRAD_BLOCKS row blocks summed, instead of one product whose inner dimension is all N rows, and the
     input gradient of a one-output layer as a broadcast product instead of an outer product through mm. Same
     gradients up to the order of summation; on this CPU (2 threads) Φσ's forward and backward over 640,000 rows took
-    79–81 ms against 91–101 ms (docs/training.md)."""
+    79–81 ms against 91–101 ms (docs/results.md#training-speed)."""
 
     @staticmethod
     def forward(ctx, x, weight, bias):

@@ -138,7 +138,7 @@ PRESETS: dict[str, ModelConfig] = {
     "tiny": ModelConfig(preset="tiny"),
     # tiny with its lifting made denser: at tiny's 160x288 input and 32 depth bins (1.4 m
     # apart) the full-resolution skip lifts its features into 6 % of the voxels of mask_camera, a sparse dot
-    # pattern; at 256x448 and 88 bins (0.5 m apart) into 33 % (docs/training.md). Same trunk, decoder and heads.
+    # pattern; at 256x448 and 88 bins (0.5 m apart) into 33 % (docs/results.md#training-speed). Same trunk, decoder and heads.
     "small": ModelConfig(preset="small", input_size=(256, 448), num_depth_bins=88),
     # The usual deployment size: ResNet-50 at 256x704, trunk at 100x100x8.
     "base": ModelConfig(

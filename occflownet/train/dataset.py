@@ -31,7 +31,7 @@ from occflownet.train.recipe import TrainConfig
 MAX_DEPTH_POINTS = 40000  # LiDAR points per sample kept for the LSS depth loss
 # Keyframes whose camera hits a data worker keeps (about 2 MB each for a nuScenes-size sweep, so 128 MB): a step
 # reads its keyframe and 2O neighbours, and with samples drawn at random a cache of only 2O + 2 frames missed
-# 5.4 of the 7 frames of a step on the quickstart's world (10 ms each; docs/training.md).
+# 5.4 of the 7 frames of a step on the quickstart's world (10 ms each; docs/results.md#training-speed).
 RAY_CACHE_FRAMES = 64
 
 

@@ -74,7 +74,7 @@ def autocast_dtype(device: torch.device, precision: str = "auto") -> torch.dtype
     """The network's autocast dtype for ``--precision`` (:data:`~occflownet.choices.PRECISIONS`): bfloat16 on CUDA
     unless ``fp32``; on a CPU only for ``bf16`` and only where it computes bf16 natively (AVX512-BF16 or AMX: emulated
     bf16 is slower than float32); None (float32) otherwise. ``auto`` keeps CPUs in float32 because bf16 autocast
-    there, 1.4x faster a step, spiked the loss in long runs that float32 fitted (docs/training.md)."""
+    there, 1.4x faster a step, spiked the loss in long runs that float32 fitted (docs/results.md#training-speed)."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     if precision == "fp32":

@@ -128,7 +128,7 @@ class TrainConfig:
                                      "over this many steps (0: full weight from the start; beyond the paper)",
                                   minimum=0, group=EXPERIMENTAL)
     ray_sampling: str = option("uniform", "how a step draws its rays: uniform (official) or sqrt-balanced (a ray of "
-                                          "a class with n rays in the keyframe is drawn with probability ∝ 1/√n; "
+                                          "a class with n rays among the step's frames t in [-O, O] is drawn with probability ∝ 1/√n; "
                                           "beyond the paper)", choices=RAY_SAMPLINGS, group=EXPERIMENTAL)
     bev_flip: bool = option(False, "mirror each training sample's ego frame in x and in y, each with probability "
                                    "0.5 (the official recipe's BEV augmentation; occflownet/train/augment.py)",
@@ -149,7 +149,7 @@ class TrainConfig:
                                      group=EXPERIMENTAL)
     precision: str = option("auto", "the network's arithmetic in training: auto = bf16 autocast on CUDA, float32 "
                                     "on CPUs; bf16 = bf16 autocast also on CPUs that compute it natively "
-                                    "(1.4x faster a step, but less stable in long runs, docs/training.md); fp32 = "
+                                    "(1.4x faster a step, but less stable in long runs, docs/results.md#training-speed); fp32 = "
                                     "float32 everywhere. Rendering and losses stay float32", choices=PRECISIONS,
                             group=EXPERIMENTAL)
 

@@ -7,7 +7,7 @@ defaults, which are the paper's *Base* setting as the official code trains it (s
 recipes of the paper's ablation ladder carry their row (``ladder_row``; ``benchmarks/`` picks rows by it). What each
 recipe scored, and on which protocol, is ``measured``, with the page of docs/ that holds the table (``source``);
 ``step_seconds`` is the cost of one ``tiny`` step (float32, 2 threads, 4,096 rays) on the reference machine, whose
-float32 matmul rate is :data:`REFERENCE_GFLOPS`, measured by ``benchmarks/perf/recipe_steps.py``.
+float32 matmul rate is :data:`REFERENCE_GFLOPS`, measured by ``benchmarks/perf/recipe_steps.py`` (docs/results.md#training-speed).
 
 Also here: the optimisation values each model preset defaults to (:data:`PRESET_SCHEDULES`), which a recipe leaves
 to the preset.
@@ -57,7 +57,7 @@ _ROW3 = {"horizon": 0, **_NO_DYNAMICS}
 _ROW2 = {**_ROW3, "depth_loss": False}
 _ROW4 = dict(_NO_DYNAMICS)
 _ROW6 = {"flow": True}
-# How this project renders rays (beyond the paper; each part measured in docs/ablation.md): the stretch of each ray
+# How this project renders rays (beyond the paper; what each part adds: docs/results.md#fitting-one-world): the stretch of each ray
 # in front of its LiDAR point and the rays beyond the grid rendered as free (ramped in over 400 steps), rays
 # through annotated boxes dropped, rays drawn ∝ 1/√(their class's count), the point terms with a free prior of 2,
 # no rendered-depth MSE, and flow's moved voxels written to the nearest voxel (the official code's mover).
