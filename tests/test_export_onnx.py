@@ -6,13 +6,14 @@ import onnx
 import pytest
 import torch
 
-from exported_models import FRAME, exported_tiny, frame_available
+from exported_models import FRAME, exported_tiny, exported_trained_tiny, frame_available
 from occflownet.export import onnx_export, parity
-from occflownet.export.parity import check_parity, compare, default_parity_samples, frame_sample
+from occflownet.export.parity import (DENSITY_TOL, OCCUPANCY_MIN_AGREEMENT, THRESHOLD_BAND, check_parity, compare,
+                                      default_parity_samples, frame_sample)
 from occflownet import __version__
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
 from occflownet.contract import METADATA_KEYS, create_session, decode_metadata
-from occflownet.runtime import ModelInputs, OnnxPredictor
+from occflownet.runtime import ModelInputs, OnnxPredictor, TorchPredictor
 from occflownet.contract import calibration_arrays
 from occflownet.rig import default_rig
 
@@ -20,6 +21,80 @@ from occflownet.rig import default_rig
 @pytest.fixture(scope="module")
 def exported():
     return exported_tiny()
+
+
+@pytest.fixture(scope="module")
+def trained():
+    """The trained tiny (occupied voxels of several classes), exported with the parity check."""
+    return exported_trained_tiny()
+
+
+def with_class_bias(path, cls: int, shift: float, out):
+    """A copy of the exported graph at ``path`` with ``shift`` added to Φs's output bias of class ``cls`` (the density
+    path untouched), written to ``out``: a graph that agrees with the model on σ and not on the classes."""
+    proto = onnx.load(str(path))
+    [init] = [i for i in proto.graph.initializer if i.name.endswith("decoder.semantic_head.2.bias")]
+    bias = onnx.numpy_helper.to_array(init).copy()
+    bias[cls] += shift
+    init.CopyFrom(onnx.numpy_helper.from_array(bias, init.name))
+    onnx.save(proto, str(out))
+    return out
+
+
+def test_compare_counts_the_voxels_away_from_tau_by_hand():
+    """Known answers: 32,000 voxels, 2,000 of them within THRESHOLD_BAND of τ (their flips do not count), so 30,000
+    are compared; one class flip among them passes (29,999 / 30,000 ≥ 99.99 %), four fail."""
+    tau = 0.35
+    dens_t = np.full(32_000, 0.9, np.float32)
+    dens_t[:1000], dens_t[1000:2000] = tau + 0.5 * THRESHOLD_BAND, tau - 0.5 * THRESHOLD_BAND
+    dens_t[2000:12_000] = 0.1                                        # free, away from τ
+    occ_t = np.where(dens_t >= tau, 4, 17).astype(np.uint8)
+    dens_o = dens_t.copy()
+    dens_o[20_000] += 6e-5
+    occ_o = occ_t.copy()
+    occ_o[:2000] = np.where(occ_t[:2000] == 17, 4, 17)               # every voxel in the band flips
+    one, four = occ_o.copy(), occ_o.copy()
+    one[30_000] = 11
+    four[[30_000, 30_001, 2000, 2001]] = [11, 11, 4, 4]              # two classes, two free voxels made occupied
+    a, b = compare(occ_t, dens_t, one, dens_o, tau), compare(occ_t, dens_t, four, dens_o, tau)
+    assert a.voxels_compared == b.voxels_compared == 30_000
+    assert a.density_max_abs_diff == pytest.approx(6e-5, rel=1e-3)
+    assert a.occupancy_agreement == pytest.approx(29_999 / 30_000, abs=1e-12) and a.ok
+    assert b.occupancy_agreement == pytest.approx(29_996 / 30_000, abs=1e-12) and not b.ok
+    assert "FAIL" in b.describe() and "99.9867%" in b.describe()
+
+
+def test_trained_export_agrees_on_occupied_voxels(trained):
+    """The parity figures of the trained model's export: every sample compares tens of thousands of voxels, a share
+    of them occupied, and agrees on at least OCCUPANCY_MIN_AGREEMENT of them."""
+    path, result, model = trained
+    assert all(c.ok for c in result.parity), result.summary()
+    for case in result.parity:
+        voxels = case.shape[0] * 200 * 200 * 16                      # batch × the grid
+        assert case.occupancy_agreement >= OCCUPANCY_MIN_AGREEMENT and case.voxels_compared > 0.9 * voxels, \
+            case.describe()
+        assert case.density_max_abs_diff <= DENSITY_TOL
+    sample = default_parity_samples(model.cfg)[0]
+    occ, _ = OnnxPredictor.open(path)(sample.inputs)
+    assert 0.005 < np.mean(occ != 17)                                # a grid with things in it
+
+
+def test_parity_fails_a_graph_whose_classes_differ_by_the_occupancy_figure(trained, tmp_path):
+    """Φs's output bias of one class raised by 100 in the graph only: σ is the model's (density within tolerance)
+    and every voxel ONNX finds occupied takes that class, so parity must fail on the occupancy agreement, whose
+    value is known from torch's grid: the share of compared voxels torch finds free or of that class."""
+    path, _, model = trained
+    cls = 1                                                          # barrier
+    altered = with_class_bias(path, cls, 100.0, tmp_path / "classes.onnx")
+    samples = default_parity_samples(model.cfg)[:1] + ([frame_sample(FRAME, 1)] if frame_available() else [])
+    for sample, case in zip(samples, check_parity(model, altered, samples, model.cfg.threshold)):
+        occ_t, dens_t = TorchPredictor(model)(sample.inputs)
+        away = np.abs(dens_t - model.cfg.threshold) > THRESHOLD_BAND
+        expected = float(np.mean(np.isin(occ_t[away], (17, cls))))
+        assert expected < 0.999, (sample.name, expected)              # occupied voxels of other classes to flip
+        assert case.density_max_abs_diff <= DENSITY_TOL, case.describe()
+        assert case.occupancy_agreement == pytest.approx(expected, abs=1e-9), case.describe()
+        assert not case.ok and "FAIL" in case.describe()
 
 
 def test_export_reports_parity_on_every_required_case(exported):
@@ -100,8 +175,9 @@ def test_parity_on_the_real_frame_with_argmax_in_play(exported):
     assert 0.2 < occupied < 0.8 and len(np.unique(occ)) >= 3      # free + several classes
 
 
-def test_dynamic_batch_and_image_size(exported):
-    path, _, model = exported
+def test_dynamic_batch_and_image_size(trained):
+    """Batch 3 at 200×128, another size than the export's: the trained model (occupied voxels) agrees with torch."""
+    path, _, model = trained
     session = create_session(path)
     K, T = calibration_arrays(default_rig(200, 128))
     rng = np.random.default_rng(3)
@@ -111,8 +187,9 @@ def test_dynamic_batch_and_image_size(exported):
     assert occ.shape == (3, 200, 200, 16) and occ.dtype == np.uint8 and dens.dtype == np.float32
     with torch.no_grad():
         occ_t, dens_t = model.inference(torch.from_numpy(images), torch.from_numpy(Ks), torch.from_numpy(Ts))
-    case = compare(occ_t.numpy(), dens_t.numpy(), occ, dens, 0.35, "dyn", images.shape)
-    assert case.ok, case.describe()
+    case = compare(occ_t.numpy(), dens_t.numpy(), occ, dens, model.cfg.threshold, "dyn", images.shape)
+    assert case.ok and case.occupancy_agreement >= OCCUPANCY_MIN_AGREEMENT, case.describe()
+    assert np.mean(occ != 17) > 0.001 and case.voxels_compared > 0.9 * occ.size      # occupied voxels compared
 
 
 def test_parity_failure_writes_nothing(exported, tmp_path, monkeypatch):
