@@ -1,9 +1,13 @@
-"""Time and peak memory of one `tiny` training step (data excluded), per configuration, each in its own process.
+"""Time and peak memory of one `tiny` training step (data excluded), per recipe, each in its own process.
 
-    python benchmarks/bench_train_step.py --dataroot W [--steps 5] [--rays 4096] [--configs base,flow,3d]
+    python -m benchmarks.perf.bench_train_step --dataroot W [--steps 5] [--rays 4096] [--recipes recommended,paper]
+        [--jsonl PATH]
 
-W is a prepared root (`occflownet prepare`). Prints seconds per step (forward, losses incl. rendering/warp,
-backward; median of --steps after one warm-up step) and the peak resident memory of the process.
+W is a prepared root (`occflownet prepare`; the recipes with 3D labels need its Occ3D labels). A recipe is a name of
+``occflownet/train/recipes.py`` (``TrainConfig.from_recipe``). Prints per recipe the seconds per step (forward,
+losses incl. rendering/warp, backward; median of --steps after one warm-up step; the batches are loaded before
+each step, untimed) and the peak resident memory of the process, with the load average and the float32 matmul rate;
+appends each to ``--jsonl``. The data loading's share of a step: ``benchmarks/perf/profile_step.py``.
 """
 from __future__ import annotations
 
@@ -14,12 +18,7 @@ import subprocess
 import sys
 import time
 
-CONFIGS = {
-    "base": dict(supervision="2d", horizon=3, flow=False),           # filter + disocclusion + loss weighting
-    "flow": dict(supervision="2d", horizon=3, flow=True),
-    "3d": dict(supervision="3d", horizon=0, flow=False),
-    "2d+3d+flow": dict(supervision="2d+3d", horizon=3, flow=True),
-}
+from benchmarks.harness import Results, add_jsonl_option, module_argv, tree_env
 
 
 def one(dataroot: str, name: str, steps: int, rays: int) -> dict:
@@ -33,7 +32,7 @@ def one(dataroot: str, name: str, steps: int, rays: int) -> dict:
     from occflownet.train.dataset import TrainingSamples, collate
     from occflownet.train.step import LossComputer
 
-    cfg = TrainConfig(dataroot=dataroot, split="all", rays_per_step=rays, **CONFIGS[name])
+    cfg = TrainConfig.from_recipe(name, dataroot=dataroot, split="all", rays_per_step=rays)
     index = load_index(dataroot)
     flows = load_flow_records(flow_path(dataroot, index.version)) if cfg.flow else None
     data = TrainingSamples(dataroot, index, index.split_positions("all"), cfg, flows)
@@ -50,7 +49,7 @@ def one(dataroot: str, name: str, steps: int, rays: int) -> dict:
         model.zero_grad(set_to_none=True)
         loss.backward()
         times.append(time.perf_counter() - t0)
-    return {"config": name, "s_per_step": float(np.median(times[1:])), "rays": rays,
+    return {"recipe": name, "s_per_step": float(np.median(times[1:])), "rays": rays,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
@@ -59,21 +58,25 @@ def main() -> int:
     ap.add_argument("--dataroot", required=True)
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--rays", type=int, default=4096)
-    ap.add_argument("--configs", default="base,flow")
+    ap.add_argument("--recipes", default="recommended,paper", help="recipe names (`occflownet recipes`)")
+    add_jsonl_option(ap)
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(one(args.dataroot, args.child, args.steps, args.rays)))
         return 0
-    print(f"{'config':<12} {'s/step':>8} {'peak RSS MB':>12}")
-    for name in args.configs.split(","):
-        res = subprocess.run([sys.executable, __file__, "--dataroot", args.dataroot, "--steps", str(args.steps),
-                              "--rays", str(args.rays), "--child", name], capture_output=True, text=True, check=True)
+    results = Results("bench_train_step", args.jsonl)
+    print(f"tiny preset, {args.rays} rays, median of {args.steps} steps after one warm-up step")
+    print("| recipe | s/step | peak RSS MB | machine |\n|---|---|---|---|")
+    for name in args.recipes.split(","):
+        res = subprocess.run([*module_argv(__spec__.name), "--dataroot", args.dataroot, "--steps", str(args.steps),
+                              "--rays", str(args.rays), "--child", name], capture_output=True, text=True,
+                             env=tree_env())
+        if res.returncode:
+            print(f"{name}: failed\n{res.stderr[-2000:]}", flush=True)
+            continue
         r = json.loads(res.stdout.strip().splitlines()[-1])
-        print(f"{r['config']:<12} {r['s_per_step']:>8.2f} {r['peak_rss_mb']:>12.0f}")
-    import os
-
-    print(f"(tiny preset, {args.rays} rays, median of {args.steps} steps; load average {os.getloadavg()[0]:.1f})")
+        results.add(r, f"| {r['recipe']} | {r['s_per_step']:.2f} | {r['peak_rss_mb']:.0f} |")
     return 0
 
 

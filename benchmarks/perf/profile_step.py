@@ -1,30 +1,31 @@
 """Where a training step's time goes: data loading, each part of the network's forward pass, the losses (rendering
-included), the backward pass, the optimizer and the EMA, for one preset and supervision, in the real loop.
+included), the backward pass, the optimizer and the EMA, for one preset and recipe, in the real loop.
 
     export OMP_NUM_THREADS=2 NUMBA_NUM_THREADS=2
-    python benchmarks/profile_step.py --dataroot W [--preset tiny] [--configs 3d,base,flow] [--steps 6]
-        [--num-workers 0] [--rays 4096] [--ops 12] [--by-shape]
+    python -m benchmarks.perf.profile_step --dataroot W [--preset tiny] [--recipes paper-3d,paper,recommended]
+        [--steps 6] [--num-workers 0] [--rays 4096] [--ops 12] [--by-shape] [--jsonl PATH]
 
-W is a prepared root (`occflownet prepare`; 3d needs its Occ3D labels). Each configuration runs in its own process:
+W is a prepared root (`occflownet prepare`; the recipes with 3D labels need its Occ3D labels). A recipe is a name of
+``occflownet/train/recipes.py`` (``TrainConfig.from_recipe``). Each recipe runs in its own process:
 the training loop's own data loader, TrainingState and LossComputer, ``occflownet.train.loop.train_step`` for
 ``--steps`` steps after one warm-up step. Stages are timed with perf_counter (module forward hooks for the network's
 parts, wrappers for the losses, the optimizer and the EMA; "backward and the rest" is the step minus the timed
 parts); the torch.profiler table of the same steps lists the operators by self CPU time. "data" is the wait for the
 next batch: with ``--num-workers 0`` the whole loading (images, rays, labels), with workers what they did not hide.
+Prints per recipe a markdown table (seconds and share of each stage) with the load average and the float32 matmul
+rate, then the operator table; appends the stage seconds to ``--jsonl``.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import resource
 import subprocess
 import sys
 import time
 from collections import defaultdict
 
-from bench_train_step import CONFIGS
-
+from benchmarks.harness import Results, add_jsonl_option, module_argv, tree_env
 from occflownet.choices import PRECISIONS
 
 PARTS = ("backbone", "neck", "depth_head", "lift", "decoder")
@@ -84,9 +85,8 @@ def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, ray
     from occflownet.train.state import TrainingState
     from occflownet.train.step import LossComputer
 
-    cfg = TrainConfig(preset=preset, dataroot=dataroot, split="all", out="/tmp/profile_step", rays_per_step=rays,
-                      num_workers=num_workers, max_steps=steps + 1, precision=precision,
-                      **CONFIGS[name])
+    cfg = TrainConfig.from_recipe(name, preset=preset, dataroot=dataroot, split="all", out="/tmp/profile_step",
+                                  rays_per_step=rays, num_workers=num_workers, max_steps=steps + 1, precision=precision)
     device = torch.device("cpu")
     reuse_freed_memory()                                         # as train() does
     index, positions, flows = loop._training_data(cfg)
@@ -123,7 +123,7 @@ def one(dataroot: str, preset: str, name: str, steps: int, num_workers: int, ray
     s["forward: preprocessing and the rest"] = s["forward"] - sum(s[f"forward: {p}"] for p in PARTS)
     table = prof.key_averages(group_by_input_shape=by_shape).table(sort_by="self_cpu_time_total", row_limit=ops,
                                                                    max_name_column_width=40)
-    return {"config": name, "preset": preset, "seconds": s, "amp": str(amp), "ops": table,
+    return {"recipe": name, "preset": preset, "seconds": s, "amp": str(amp), "ops": table,
             "threads": torch.get_num_threads(), "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
@@ -135,7 +135,7 @@ ORDER = ("data", "forward: backbone", "forward: neck", "forward: depth_head", "f
 def report(r: dict) -> str:
     s = r["seconds"]
     total = s["data"] + s["step"]
-    lines = [f"## {r['preset']} {r['config']}: {total:.3f} s per step (data + step), {r['threads']} torch threads, "
+    lines = [f"## {r['preset']} {r['recipe']}: {total:.3f} s per step (data + step), {r['threads']} torch threads, "
              f"autocast {r['amp']}, peak RSS {r['peak_rss_mb']:.0f} MB", "", "| stage | s/step | share |",
              "|---|---|---|"]
     lines += [f"| {k} | {s[k]:.3f} | {100 * s[k] / total:.1f} % |" for k in ORDER]
@@ -146,7 +146,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dataroot", required=True)
     ap.add_argument("--preset", default="tiny")
-    ap.add_argument("--configs", default="3d,base,flow", help=f"of {sorted(CONFIGS)}")
+    ap.add_argument("--recipes", default="paper-3d,paper,recommended", help="recipe names (`occflownet recipes`)")
     ap.add_argument("--steps", type=int, default=6)
     ap.add_argument("--num-workers", type=int, default=0)
     ap.add_argument("--rays", type=int, default=None, help="rays per step (default: the preset's)")
@@ -154,25 +154,29 @@ def main() -> int:
     ap.add_argument("--precision", default="auto", choices=PRECISIONS,
                     help="train --precision (auto: float32 on CPUs; bf16: autocast where the CPU computes it natively)")
     ap.add_argument("--by-shape", action="store_true", help="one operator row per input shape (record_shapes)")
+    add_jsonl_option(ap)
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(one(args.dataroot, args.preset, args.child, args.steps, args.num_workers, args.rays,
                              args.ops, precision=args.precision, by_shape=args.by_shape)))
         return 0
-    for name in args.configs.split(","):
-        cmd = [sys.executable, __file__, "--dataroot", args.dataroot, "--preset", args.preset, "--steps",
+    results = Results("profile_step", args.jsonl)
+    print(f"(mean of {args.steps} steps after one warm-up step, which the operator table leaves out too)")
+    for name in args.recipes.split(","):
+        cmd = [*module_argv(__spec__.name), "--dataroot", args.dataroot, "--preset", args.preset, "--steps",
                str(args.steps), "--num-workers", str(args.num_workers), "--ops", str(args.ops), "--child", name]
         if args.rays:
             cmd += ["--rays", str(args.rays)]
         cmd += ["--precision", args.precision] + (["--by-shape"] if args.by_shape else [])
-        res = subprocess.run(cmd, capture_output=True, text=True)
+        res = subprocess.run(cmd, capture_output=True, text=True, env=tree_env())
         if res.returncode != 0:
             print(f"## {args.preset} {name}: failed\n{res.stderr[-2000:]}")
             continue
-        print(report(json.loads(res.stdout.strip().splitlines()[-1])), flush=True)
-    print(f"(mean of {args.steps} steps after one warm-up step, which the operator table leaves out too; load "
-          f"average {os.getloadavg()[0]:.1f})")
+        r = json.loads(res.stdout.strip().splitlines()[-1])
+        head, _, body = report(r).partition("\n")
+        results.add({k: v for k, v in r.items() if k != "ops"}, head)
+        print(body, flush=True)
     return 0
 
 
