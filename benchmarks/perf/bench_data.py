@@ -1,12 +1,15 @@
 """Data-reader figures on a prepared nuScenes-format root: index load time, rays per keyframe, ray build time.
 
-    python benchmarks/bench_data.py --dataroot DIR [--version V] [--horizon 3] [--samples 20] [--repeat 3]
+    python -m benchmarks.perf.bench_data --dataroot DIR [--version V] [--horizon 3] [--samples 20] [--repeat 3]
+        [--jsonl PATH]
 
 Run ``occflownet prepare --dataroot DIR`` first. For each of up to ``--samples`` keyframes (evenly spread over the
 index) the rays of t ∈ [-O, O] are built (a) cold: no per-frame cache, every sweep of the window is loaded and
 projected; (b) sequential: keyframes in scene order with the default per-frame cache (what a sequential loader
-sees; a shuffled training loader is closer to cold). Prints best-of-``--repeat`` medians (the machine may be
-shared); record them in docs/data.md.
+sees; a shuffled training loader is closer to cold). Prints the index load time, rays and frames per keyframe and
+best-of-``--repeat`` medians of the ray build (the machine may be shared), with the load average and the float32
+matmul rate (appended to ``--jsonl``); then, per t, the share of ray endpoints whose Occ3D voxel holds the ray's
+label.
 """
 from __future__ import annotations
 
@@ -16,6 +19,7 @@ import time
 
 import numpy as np
 
+from benchmarks.harness import Results, add_jsonl_option
 from occflownet.occ3d import STATIC_CLASSES
 from occflownet.data import load_index
 from occflownet.data.loaders import load_occupancy
@@ -29,7 +33,9 @@ def main() -> None:
     p.add_argument("--horizon", type=int, default=3)
     p.add_argument("--samples", type=int, default=20)
     p.add_argument("--repeat", type=int, default=3)
+    add_jsonl_option(p)
     args = p.parse_args()
+    results = Results("bench_data", args.jsonl)
 
     t = time.perf_counter()
     index = load_index(args.dataroot, args.version)
@@ -61,14 +67,20 @@ def main() -> None:
         for pos in range(len(index)) if len(index) <= 200 else positions:
             builder.rays(int(pos))
         sequential.append((time.perf_counter() - t) / (len(index) if len(index) <= 200 else len(positions)))
-    print(f"horizon {args.horizon}: {statistics.median(frames):.0f} frames/keyframe (median), "
-          f"{statistics.median(rays):,.0f} rays/keyframe (median)")
-    print(f"rays per keyframe, cold (no cache): {min(cold) * 1e3:.0f} ms (median over {len(positions)} keyframes, "
-          f"best of {args.repeat})")
+    lines = [f"horizon {args.horizon}: {statistics.median(frames):.0f} frames/keyframe (median), "
+             f"{statistics.median(rays):,.0f} rays/keyframe (median)",
+             f"rays per keyframe, cold (no cache): {min(cold) * 1e3:.0f} ms (median over {len(positions)} keyframes, "
+             f"best of {args.repeat})"]
     if cold_full:
-        print(f"rays per keyframe with all {full} frames, cold: {min(cold_full) * 1e3:.0f} ms (median, best of "
-              f"{args.repeat})")
-    print(f"rays per keyframe, sequential with cache: {min(sequential) * 1e3:.0f} ms (mean, best of {args.repeat})")
+        lines.append(f"rays per keyframe with all {full} frames, cold: {min(cold_full) * 1e3:.0f} ms (median, best of "
+                     f"{args.repeat})")
+    lines.append(f"rays per keyframe, sequential with cache: {min(sequential) * 1e3:.0f} ms (mean, best of "
+                 f"{args.repeat})")
+    results.add({"dataroot": args.dataroot, "keyframes": len(index), "load_index_ms": load_s * 1e3,
+                 "horizon": args.horizon, "frames_per_keyframe": statistics.median(frames),
+                 "rays_per_keyframe": statistics.median(rays), "cold_ms": min(cold) * 1e3,
+                 "cold_all_frames_ms": min(cold_full) * 1e3 if cold_full else None,
+                 "sequential_ms": min(sequential) * 1e3}, "\n".join(lines))
     agreement(index, args.dataroot, config, positions)
 
 

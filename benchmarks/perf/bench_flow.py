@@ -1,11 +1,14 @@
 """Occupancy-flow figures: warp time per frame, voxels_in_box time, disk bytes per keyframe.
 
-    python benchmarks/bench_flow.py [--boxes 20] [--frames 6] [--repeat 7] [--device cpu] [--threads N]
+    python -m benchmarks.perf.bench_flow [--boxes 20] [--frames 6] [--repeat 7] [--device cpu] [--threads N]
+        [--jsonl PATH]
 
 A typical nuScenes keyframe has ~20 dynamic boxes in the grid range (cars dominate); the scene here has 14 cars,
 3 pedestrians, 2 trucks and a bus, each filled with predicted voxels of its class, moved into 6 temporal frames
-(t = ±1..±3) at a few m/s. Prints best-of-``--repeat`` times (the machine may be shared); record them in
-docs/results.md.
+(t = ±1..±3) at a few m/s. Prints best-of-``--repeat`` times (the machine may be shared), each with the load
+average and the float32 matmul rate (appended to ``--jsonl``): ``box_flows`` per keyframe, ``voxels_in_box`` per
+box, ``flow_moves`` per sample, the plain per-frame copies, the warp per frame for each mover (forward, and forward
++ backward), and the bytes on disk per keyframe.
 """
 from __future__ import annotations
 
@@ -17,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.harness import Results, add_jsonl_option
 from occflownet.choices import FLOW_MOVERS
 from occflownet.occ3d import GRID, NUM_CLASSES
 from occflownet.data.flow import box_flows, flow_moves, save_flow_records
@@ -69,7 +73,9 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: leave the default)")
+    add_jsonl_option(ap)
     args = ap.parse_args()
+    results = Results("bench_flow", args.jsonl)
     if args.threads:
         torch.set_num_threads(args.threads)
     rng = np.random.default_rng(0)
@@ -77,28 +83,31 @@ def main() -> None:
     frames = [t for t in range(-half, half + 1) if t != 0]
     boxes, ego = make_tracks(args.boxes, frames, rng)
     record = box_flows("bench", boxes[0], {t: boxes[t] for t in frames}, ego)
-    arrays = bench_precompute(record, boxes, ego, frames, args)
-    bench_warp(record, arrays, frames, args)
-    bench_disk(record, frames, rng, args)
+    arrays = bench_precompute(record, boxes, ego, frames, args, results)
+    bench_warp(record, arrays, frames, args, results)
+    bench_disk(record, frames, rng, args, results)
 
 
-def bench_precompute(record, boxes, ego, frames, args) -> dict:
+def bench_precompute(record, boxes, ego, frames, args, results: Results) -> dict:
     """box_flows once per keyframe (prepare); voxels_in_box per box and flow_moves per sample (data workers).
     Returns the flow_moves arrays."""
     t_prep = timed(lambda: box_flows("bench", boxes[0], {t: boxes[t] for t in frames}, ego), args.repeat)
     print(f"device={args.device} threads={torch.get_num_threads()} boxes={len(record.box_index)} "
           f"moves={len(record.offset)} frames={frames}")
-    print(f"box_flows (precompute, once per keyframe in prepare): {1e3 * t_prep:.2f} ms/keyframe")
+    results.add({"box_flows_ms_per_keyframe": 1e3 * t_prep},
+                f"box_flows (precompute, once per keyframe in prepare): {1e3 * t_prep:.2f} ms/keyframe")
     t_box = timed(lambda: [voxels_in_box(c, s, q) for c, s, q in zip(record.center, record.size_wlh,
                                                                          record.rotation)], args.repeat)
     t_moves = timed(lambda: flow_moves(record, frames), args.repeat)
     arrays = flow_moves(record, frames)
-    print(f"voxels_in_box: {1e3 * t_box / len(record.box_index):.3f} ms/box; flow_moves (all boxes, "
-          f"{len(frames)} frames): {1e3 * t_moves:.2f} ms/sample; voxels listed: {len(arrays['voxels'])}")
+    results.add({"voxels_in_box_ms_per_box": 1e3 * t_box / len(record.box_index),
+                 "flow_moves_ms_per_sample": 1e3 * t_moves, "voxels_listed": len(arrays["voxels"])},
+                f"voxels_in_box: {1e3 * t_box / len(record.box_index):.3f} ms/box; flow_moves (all boxes, "
+                f"{len(frames)} frames): {1e3 * t_moves:.2f} ms/sample; voxels listed: {len(arrays['voxels'])}")
     return arrays
 
 
-def bench_warp(record, arrays, frames, args) -> None:
+def bench_warp(record, arrays, frames, args, results: Results) -> None:
     """warp_volumes forward (and forward + backward) per frame for both movers, against plain copies."""
     # a prediction where every box's body is predicted as its class
     density = torch.rand(1, *GRID.shape) * 0.2
@@ -119,7 +128,8 @@ def bench_warp(record, arrays, frames, args) -> None:
         return out
 
     t_copy = timed(copy_only, args.repeat)
-    print(f"plain copies (no boxes) of {len(frames)} frames: {1e3 * t_copy / len(frames):.1f} ms/frame")
+    results.add({"copy_ms_per_frame": 1e3 * t_copy / len(frames)},
+                f"plain copies (no boxes) of {len(frames)} frames: {1e3 * t_copy / len(frames):.1f} ms/frame")
     for mover in FLOW_MOVERS:
         def run():
             out = warp_volumes(density, logits, source, moves, mover)
@@ -136,12 +146,14 @@ def bench_warp(record, arrays, frames, args) -> None:
             sync()
 
         t_bwd = timed(run_bwd, args.repeat)
-        print(f"warp {mover:7s}: forward {1e3 * t_fwd / len(frames):.1f} ms/frame "
-              f"(moves only ≈ {1e3 * (t_fwd - t_copy) / len(frames):.1f} ms/frame), forward+backward "
-              f"{1e3 * t_bwd / len(frames):.1f} ms/frame")
+        results.add({"mover": mover, "forward_ms_per_frame": 1e3 * t_fwd / len(frames),
+                     "forward_backward_ms_per_frame": 1e3 * t_bwd / len(frames)},
+                    f"warp {mover:7s}: forward {1e3 * t_fwd / len(frames):.1f} ms/frame "
+                    f"(moves only ≈ {1e3 * (t_fwd - t_copy) / len(frames):.1f} ms/frame), forward+backward "
+                    f"{1e3 * t_bwd / len(frames):.1f} ms/frame")
 
 
-def bench_disk(record, frames, rng, args) -> None:
+def bench_disk(record, frames, rng, args, results: Results) -> None:
     """Bytes on disk: one record in its own file, and 200 keyframes in one file."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "one.npz"
@@ -154,8 +166,9 @@ def bench_disk(record, frames, rng, args) -> None:
         save_flow_records(Path(tmp) / "many.npz", many)
         bundle = (Path(tmp) / "many.npz").stat().st_size / len(many)
     raw = sum(a.nbytes for a in record.arrays().values())
-    print(f"disk: {single} B for one record in its own .npz; {bundle:.0f} B/keyframe in a 200-keyframe bundle; "
-          f"raw arrays {raw} B (official voxel lists ≈ 260 KB/keyframe)")
+    results.add({"disk_bytes_one_record": single, "disk_bytes_per_keyframe_bundled": bundle, "raw_bytes": raw},
+                f"disk: {single} B for one record in its own .npz; {bundle:.0f} B/keyframe in a 200-keyframe bundle; "
+                f"raw arrays {raw} B (official voxel lists ≈ 260 KB/keyframe)")
 
 
 if __name__ == "__main__":

@@ -12,8 +12,10 @@ Two minimal servers, each a real uvicorn process on 127.0.0.1 behind the server'
 Each case runs in a fresh server process; reported: the answer, the bytes the client got to send, the server's
 peak resident memory (VmHWM) minus its resident memory before the request, and the bytes it wrote to temporary
 files (peak of the spool folder). Bodies are streamed chunked (no Content-Length), so the middleware counts them.
+Prints a markdown table, one row per case and kind as it finishes, with the load average and the float32 matmul
+rate; each row also as a JSON line to ``--jsonl``.
 
-    python benchmarks/bench_form.py            # the cases below, a table on stdout
+    python -m benchmarks.perf.bench_form            # the cases below, a table on stdout
 """
 
 import argparse
@@ -25,13 +27,10 @@ import threading
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))
-
-from serve_fixtures import free_port  # noqa: E402
-
-from occflownet.occ3d import CAMERAS  # noqa: E402
-from occflownet.serve.client import wait_ready  # noqa: E402
+from benchmarks.harness import Results, add_jsonl_option, module_argv, tree_env
+from occflownet.occ3d import CAMERAS
+from occflownet.serve.client import wait_ready
+from tests.serve_fixtures import free_port
 
 MiB = 1024 * 1024
 BOUNDARY = b"b0undary"
@@ -126,8 +125,8 @@ def run_case(kind: str, name: str, max_body: int) -> dict:
 
     port = free_port()
     spool = Path(tempfile.mkdtemp(prefix="bench-form-"))
-    proc = subprocess.Popen([sys.executable, __file__, "--serve", kind, "--port", str(port), "--max-body",
-                             str(max_body)], env=os.environ | {"TMPDIR": str(spool)})
+    proc = subprocess.Popen([*module_argv(__spec__.name), "--serve", kind, "--port", str(port), "--max-body",
+                             str(max_body)], env=tree_env(TMPDIR=str(spool)))
     sent, peak_tmp, stop = 0, 0, threading.Event()
 
     def watch_tmp():
@@ -177,17 +176,20 @@ def main(argv=None) -> int:
     p.add_argument("--serve", choices=["reader", "framework"], help=argparse.SUPPRESS)
     p.add_argument("--port", type=int, help=argparse.SUPPRESS)
     p.add_argument("--max-body", type=int, default=64 * MiB, help="body limit in bytes (default 64 MiB)")
+    add_jsonl_option(p)
     args = p.parse_args(argv)
     if args.serve:
         serve(args.serve, args.port, args.max_body)
         return 0
-    print("| case | form handling | answer | sent | peak RSS growth | temp files | time |")
-    print("|---|---|---|---:|---:|---:|---:|")
+    results = Results("bench_form", args.jsonl)
+    print("| case | form handling | answer | sent | peak RSS growth | temp files | time | machine |")
+    print("|---|---|---|---:|---:|---:|---:|---|")
     for name in CASES:
         for kind in ("reader", "framework"):
             r = run_case(kind, name, args.max_body)
-            print(f"| {name} | {kind} | {r['answer']} | {r['sent'] / MiB:.1f} MiB | {r['rss_growth'] / MiB:.1f} MiB "
-                  f"| {r['tmp'] / MiB:.1f} MiB | {r['seconds']:.2f} s |", flush=True)
+            results.add({"case": name, "kind": kind, **r},
+                        f"| {name} | {kind} | {r['answer']} | {r['sent'] / MiB:.1f} MiB | "
+                        f"{r['rss_growth'] / MiB:.1f} MiB | {r['tmp'] / MiB:.1f} MiB | {r['seconds']:.2f} s |")
     return 0
 
 

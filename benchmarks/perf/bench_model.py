@@ -1,12 +1,14 @@
 """Model cost on this CPU: tiny forward+backward (training step shape), and one forward of larger presets.
 
-    python benchmarks/bench_model.py [--cases tiny-train base-forward paper-forward] [--steps 5]
+    python -m benchmarks.perf.bench_model [--cases tiny-train base-forward paper-forward] [--steps 5] [--jsonl PATH]
 
 Each case runs in its own child process so that its peak RSS (resource.ru_maxrss) is its own.
 - ``tiny-train``: batch 1 (six 480x270 images, the synthetic world's size), forward + backward of a loss touching
   every output (density, logits, depth_prob), ``--steps`` timed steps after one warm-up; parameter count.
 - ``base-forward`` / ``paper-forward``: one no-grad ``forward`` at batch 1 (the reduced batch) from six 1600x900
   images, timed once after building.
+Prints per case the parameter count, the time and the peak resident memory, with the load average and the float32
+matmul rate (appended to ``--jsonl``).
 """
 from __future__ import annotations
 
@@ -17,10 +19,8 @@ import resource
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks.harness import Results, add_jsonl_option, module_argv, tree_env
 
 
 def _inputs(width: int, height: int, batch: int = 1):
@@ -83,22 +83,24 @@ def main(argv=None) -> int:
                    choices=["tiny-train", "base-train", "tiny-forward", "base-forward", "paper-forward"])
     p.add_argument("--steps", type=int, default=5)
     p.add_argument("--child", help=argparse.SUPPRESS)
+    add_jsonl_option(p)
     args = p.parse_args(argv)
     if args.child:
         print(json.dumps(run_case(args.child, args.steps)))
         return 0
-    print(f"cpu cores {os.cpu_count()}, load average {os.getloadavg()[0]:.2f}")
+    results = Results("bench_model", args.jsonl)
+    print(f"cpu cores {os.cpu_count()}")
     for case in args.cases:
-        proc = subprocess.run([sys.executable, __file__, "--child", case, "--steps", str(args.steps)],
-                              capture_output=True, text=True)
+        proc = subprocess.run([*module_argv(__spec__.name), "--child", case, "--steps", str(args.steps)],
+                              capture_output=True, text=True, env=tree_env())
         if proc.returncode:
             print(f"{case}: FAILED\n{proc.stderr[-2000:]}")
             continue
         r = json.loads(proc.stdout.strip().splitlines()[-1])
         timing = (f"forward+backward p50 {r['step_p50_s'] * 1e3:.0f} ms (min {r['step_min_s'] * 1e3:.0f})"
                   if "step_p50_s" in r else f"one forward {r['forward_s']:.1f} s")
-        print(f"{case}: {r['params_M']:.2f} M params, {timing}, peak RSS {r['peak_rss_mb']:.0f} MB "
-              f"(after build {r['rss_after_build_mb']:.0f} MB)", flush=True)
+        results.add(r, f"{case}: {r['params_M']:.2f} M params, {timing}, peak RSS {r['peak_rss_mb']:.0f} MB "
+                       f"(after build {r['rss_after_build_mb']:.0f} MB)")
     return 0
 
 

@@ -1,29 +1,29 @@
 """Cost of the in-graph antialiased resize: the explicit triangle filter (``occflownet.model.preprocess``) against
 the fused kernels it replaced (torch ``F.interpolate(antialias=True)``, ONNX ``Resize(antialias=1)``).
 
-    python benchmarks/bench_preprocess.py [--runs 40] [--threads 2]
+    python -m benchmarks.perf.bench_preprocess [--runs 40] [--threads 2] [--jsonl PATH]
 
-Prints, interleaving the two variants run by run (so machine load hits both alike):
+Prints, interleaving the two variants run by run (``benchmarks.harness.interleaved``, after one untimed run of
+each; so machine load hits both alike), each row with the load average and the float32 matmul rate (appended to
+``--jsonl``):
 - onnxruntime: the whole preprocessing graph (crop, decimation, resize, normalisation, intrinsics) exported both ways,
   on six images of the real frame (1600x900, when ``../shared/data/nuscenes-frame`` exists, else random) and on the
   same images shrunk to 480x270;
 - torch eager: the resize alone on six images as preprocessing sees them (3x445x800 for 1600x900, 3x267x480);
-- how far apart the two are (0..255 scale) and the load average.
+- how far apart the two are (0..255 scale).
 """
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-FRAME = ROOT.parent / "shared" / "data" / "nuscenes-frame"
+from benchmarks.harness import SHARED_DATA, Results, add_jsonl_option, interleaved
+
+FRAME = SHARED_DATA / "nuscenes-frame"
 
 
 def _graphs(tmp: Path, images: np.ndarray, K: np.ndarray) -> dict[str, Path]:
@@ -63,26 +63,26 @@ def _graphs(tmp: Path, images: np.ndarray, K: np.ndarray) -> dict[str, Path]:
 
 
 def _interleaved(fns: dict, runs: int) -> dict[str, list[float]]:
-    times = {k: [] for k in fns}
+    """{variant: ms per run} of ``runs`` interleaved runs after one untimed run of each."""
     for f in fns.values():
         f()
-    for _ in range(runs):
-        for k, f in fns.items():
-            t = time.perf_counter()
-            f()
-            times[k].append(1000 * (time.perf_counter() - t))
-    return times
+    return {k: [1000 * seconds for seconds, _ in v] for k, v in interleaved(fns, runs).items()}
 
 
-def _row(label: str, times: dict[str, list[float]]) -> str:
-    return f"{label:<34}" + "  ".join(f"{k}: p50 {np.median(v):6.1f} ms (min {min(v):6.1f})" for k, v in times.items())
+def _add(results: Results, label: str, times: dict[str, list[float]], apart: float) -> None:
+    line = f"{label:<34}" + "  ".join(f"{k}: p50 {np.median(v):6.1f} ms (min {min(v):6.1f})" for k, v in times.items())
+    results.add({"what": label, "p50_ms": {k: float(np.median(v)) for k, v in times.items()},
+                 "min_ms": {k: min(v) for k, v in times.items()}, "max_abs_diff_of_255": apart},
+                line + f"  max |diff| {apart:.1e}/255")
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=40)
     ap.add_argument("--threads", type=int, default=2)
+    add_jsonl_option(ap)
     args = ap.parse_args()
+    results = Results("bench_preprocess", args.jsonl)
 
     import cv2
     import onnxruntime as ort
@@ -102,8 +102,7 @@ def main() -> int:
         source = "random images"
     small = np.stack([cv2.resize(a, (480, 270), interpolation=cv2.INTER_AREA) for a in full[0]])[None]
     K = np.tile(np.eye(3, dtype=np.float32), (1, 6, 1, 1))
-    print(f"{source}; {args.threads} threads; {args.runs} interleaved runs; load average "
-          f"{os.getloadavg()[0]:.1f}")
+    print(f"{source}; {args.threads} threads; {args.runs} interleaved runs")
     with tempfile.TemporaryDirectory() as tmp:
         graphs = _graphs(Path(tmp), full, K)
         so = ort.SessionOptions()
@@ -115,8 +114,8 @@ def main() -> int:
             outs = [s.run(None, feeds)[0] for s in sessions.values()]
             std = np.array([58.395, 57.12, 57.375], np.float32).reshape(1, 3, 1, 1)
             apart = float(np.abs((outs[0] - outs[1]) * std).max())
-            print(_row(label, _interleaved({k: (lambda s=s: s.run(None, feeds)) for k, s in sessions.items()},
-                                           args.runs)) + f"  max |diff| {apart:.1e}/255")
+            _add(results, label, _interleaved({k: (lambda s=s: s.run(None, feeds)) for k, s in sessions.items()},
+                                              args.runs), apart)
     for shape in ((6, 3, 445, 800), (6, 3, 267, 480)):
         x = torch.randint(0, 256, shape, generator=torch.Generator().manual_seed(0)).float()
         fns = {"F.interpolate(antialias)": lambda: F.interpolate(x, size=(160, 288), mode="bilinear",
@@ -124,9 +123,7 @@ def main() -> int:
                "triangle filter": lambda: antialiased_resize(x, (160, 288))}
         with torch.no_grad():
             apart = float((fns["F.interpolate(antialias)"]() - fns["triangle filter"]()).abs().max())
-            print(_row(f"torch resize, {'x'.join(map(str, shape))}", _interleaved(fns, args.runs))
-                  + f"  max |diff| {apart:.1e}/255")
-    print(f"load average at the end {os.getloadavg()[0]:.1f}")
+            _add(results, f"torch resize, {'x'.join(map(str, shape))}", _interleaved(fns, args.runs), apart)
     return 0
 
 

@@ -2,10 +2,13 @@
 finished one) and prints each stage's seconds per unit of work beside this machine's matmul rate, as the
 ``StageCosts`` that ``occflownet/quickstart.py`` scales into the estimate it prints at the start.
 
-    python benchmarks/bench_quickstart.py --out /tmp/qs [--reuse] [quickstart options ...]
+    python -m benchmarks.perf.bench_quickstart --out /tmp/qs [--reuse] [--jsonl PATH] [quickstart options ...]
 
 ``--reuse``: do not run; read ``OUT/timings.json`` and ``OUT/run/log.jsonl`` of a quickstart that ran on this
-machine. Steps are counted from the run's log (the time limit may stop training before ``--max-steps``).
+machine. Steps are counted from the run's log (the time limit may stop training before ``--max-steps``). Prints
+one JSON object: the float32 matmul rate (1024³, torch's threads, measured over 2 s after the run), the stage
+costs and the validation scores in % (mIoU, geometry IoU, car IoU, RayIoU inside mask_camera), followed by the
+load average; the same record is appended to ``--jsonl``.
 """
 from __future__ import annotations
 
@@ -15,6 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from benchmarks.harness import Results, add_jsonl_option
 from occflownet.quickstart import QuickstartConfig
 
 
@@ -45,14 +49,16 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", required=True)
     p.add_argument("--reuse", action="store_true")
+    add_jsonl_option(p)
     args, rest = p.parse_known_args(argv)
     out = Path(args.out)
     if not args.reuse:
         subprocess.run([sys.executable, "-m", "occflownet", "quickstart", "--out", str(out), *rest], check=True)
-    from occflownet.quickstart import matmul_gflops
-
-    costs = {"matmul_gflops": matmul_gflops(seconds=2.0), **stage_costs(out)}
-    print(json.dumps({k: round(v, 3) for k, v in costs.items()} | {"scores": val_scores(out)}, indent=1))
+    results = Results("bench_quickstart", args.jsonl, matmul_seconds=2.0)
+    state = results.state()
+    costs = {"matmul_gflops": state["matmul_gflops"], **stage_costs(out)}
+    record = {k: round(v, 3) for k, v in costs.items()} | {"scores": val_scores(out)}
+    results.add(record, json.dumps(record, indent=1), state)
     return 0
 
 

@@ -1,6 +1,6 @@
 """Seconds per sample of the CPU RayIoU (and of the Occ3D mIoU update), on a few kinds of 200×200×16 scenes.
 
-    python benchmarks/bench_ray_iou.py [--origins 8] [--repeats 3]
+    python -m benchmarks.perf.bench_ray_iou [--origins 8] [--repeats 3] [--jsonl PATH]
 
 Each sample casts the reference's 14,040 LiDAR-pattern rays from every origin through the ground truth, then
 through the prediction for the rays with a ground-truth hit (as the reference keeps only those). Scenes:
@@ -8,19 +8,21 @@ through the prediction for the rays with a ground-truth hit (as the reference ke
   prediction is the ground truth shifted by one voxel with 5 % of its occupied voxels relabelled;
 - sparse: 0.5 % random occupancy, no ground: most rays run to the grid border (the slow case);
 - real: the shared Occ3D sample (../shared/data/occ3d-sample/labels.npz), if present, prediction shifted.
+Prints per scene the median seconds per sample of each, with the load average and the float32 matmul rate
+(appended to ``--jsonl``).
 """
 from __future__ import annotations
 
 import argparse
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
 
+from benchmarks.harness import SHARED_DATA, Results, add_jsonl_option
 from occflownet.eval import OccupancyMetric, RayIoUMetric
 
-LABELS = Path(__file__).resolve().parents[2] / "shared" / "data" / "occ3d-sample" / "labels.npz"
+LABELS = SHARED_DATA / "occ3d-sample" / "labels.npz"
 
 
 def street_scene(rng: np.random.Generator) -> np.ndarray:
@@ -53,7 +55,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--origins", type=int, default=8, help="ray origins per sample (reference: up to 8)")
     parser.add_argument("--repeats", type=int, default=3, help="timed samples per scene (median reported)")
+    add_jsonl_option(parser)
     args = parser.parse_args()
+    results = Results("bench_ray_iou", args.jsonl)
 
     rng = np.random.default_rng(0)
     # LiDAR origins of neighbouring keyframes, in the current ego frame: along the road, ~4.5 m apart
@@ -79,9 +83,12 @@ def main() -> None:
             occ.update(pred, gt, gt != 17)
             occ_times.append(time.perf_counter() - start)
         res = metric.compute()
-        print(f"{name:7s} RayIoU {statistics.median(ray_times):.3f} s/sample "
-              f"({res['rays_with_gt_hit']} rays with a gt hit; RayIoU {100 * res['rayiou']:.1f}) | "
-              f"Occ3D mIoU update {1000 * statistics.median(occ_times):.1f} ms/sample")
+        results.add({"scene": name, "origins": args.origins, "rayiou_s_per_sample": statistics.median(ray_times),
+                     "miou_update_ms_per_sample": 1000 * statistics.median(occ_times),
+                     "rays_with_gt_hit": res["rays_with_gt_hit"]},
+                    f"{name:7s} RayIoU {statistics.median(ray_times):.3f} s/sample "
+                    f"({res['rays_with_gt_hit']} rays with a gt hit; RayIoU {100 * res['rayiou']:.1f}) | "
+                    f"Occ3D mIoU update {1000 * statistics.median(occ_times):.1f} ms/sample")
 
 
 if __name__ == "__main__":

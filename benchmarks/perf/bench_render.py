@@ -1,13 +1,14 @@
 """Rendering throughput on CPU: occflownet's renderer vs a naive grid_sample renderer, forward + backward.
 
-    python benchmarks/bench_render.py [--rays 32768] [--repeats 2]
+    python -m benchmarks.perf.bench_render [--rays 32768] [--repeats 2] [--threads N] [--jsonl PATH]
 
 Scene: the Occ3D sample labels (../shared/data/occ3d-sample/labels.npz) turned into a "trained-looking" volume
 (σ = 0.95 in occupied voxels, 0.02 in free ones, plus noise; logits = 4·one-hot + noise), and camera rays of the
 shared nuScenes frame (../shared/data/nuscenes-frame: six camera centres → LiDAR points that project into that
 camera). Without the shared data it falls back to a synthetic volume (ground + boxes) and random rays and says so.
 
-Printed: rendered samples per second (n_coarse + n_fine per ray) for
+Printed: rendered samples per second (n_coarse + n_fine per ray), each with the load average and the float32 matmul
+rate (appended to ``--jsonl``), for
 - ``naive``: F.grid_sample on the [1, 18, Z, Y, X] volume (σ + 17 logits) at all 150 samples, with autograd
   through both lookups, then the same weights/depth/semantics formulas;
 - ``grid_sample``: occflownet's renderer with ``lookup="grid_sample"`` (coarse pass σ-only without grad);
@@ -23,17 +24,17 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from benchmarks.harness import SHARED_DATA, Results, add_jsonl_option
 from occflownet.occ3d import GRID, NUM_CLASSES
 from occflownet.render.sampling import importance_sample, intervals_from_samples, uniform_jittered_edges
 from occflownet.render.volume_render import RenderConfig, render_rays, weights_from_density
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED = SHARED_DATA
 
 
 def load_scene(n_rays: int, rng: np.random.Generator):
@@ -123,7 +124,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2, help="timed runs per method (best is reported)")
     ap.add_argument("--threads", type=int, default=0,
                     help="threads for the naive renderer (torch) and for numba (0: torch's default)")
+    add_jsonl_option(ap)
     args = ap.parse_args()
+    results_out = Results("bench_render", args.jsonl)
     if args.threads:
         torch.set_num_threads(args.threads)
     cfg = RenderConfig()
@@ -152,7 +155,9 @@ def main() -> None:
     results = {}
     for name, render in methods.items():
         seconds, results[name] = timed(lambda: step(render), args.repeats)
-        print(f"{name:12s} {seconds:7.2f} s  {args.rays * per_ray / seconds / 1e6:6.2f} M samples/s")
+        results_out.add({"method": name, "rays": args.rays, "seconds": seconds,
+                         "msamples_per_s": args.rays * per_ray / seconds / 1e6},
+                        f"{name:12s} {seconds:7.2f} s  {args.rays * per_ray / seconds / 1e6:6.2f} M samples/s")
         results[name] = (seconds, *results[name])
     base = results["naive"]
     print(f"speed-up numba vs naive ({threads} threads each): {base[0] / results['numba'][0]:.1f}x; numba 1 thread "

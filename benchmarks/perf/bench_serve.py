@@ -2,23 +2,23 @@
 
 1. Starts `occflownet serve` (a real uvicorn process) and, in this process, an onnxruntime session on the same model
    with the same thread settings, on the same decoded arrays.
-2. Interleaved phase (one client): direct JPEG decode, direct ``session.run`` and one HTTP request, in turn, so
-   machine noise (the 2-core machine is shared) hits both sides alike. Reports the HTTP overhead two ways: paired
+2. Interleaved phase (one client): direct JPEG decode, direct ``session.run`` and one HTTP request, in turn
+   (``benchmarks.harness.interleaved``), so machine noise (the 2-core machine is shared) hits all sides alike. Reports the HTTP overhead two ways: paired
    (client latency minus the server's own decode/queue/inference/encode times of that request, from its
    Server-Timing header) and against the direct run (p50 HTTP - p50 session.run - p50 server decode).
 3. Throughput and p50/p99 latency at 1, 2, 4 concurrent clients (client threads share the machine with the server).
 4. Resident memory of the server after 10 and after ``--rss-requests`` requests; B=2 vs two B=1 runs (micro-batching).
-Every loop is bounded by a request count and a time limit.
+Every loop is bounded by a request count and a time limit. Each figure's line ends with the load average and the
+float32 matmul rate; the figures are appended to ``--jsonl`` as they come.
 
-    python benchmarks/bench_serve.py                       # real random-init tiny export if `occflownet export`
-                                                           # works, else the fake test model (says which)
-    python benchmarks/bench_serve.py --model model.onnx    # any contract-v1 model
-    python benchmarks/bench_serve.py --fake                # the fake model of tests/serve_fixtures.py
+    python -m benchmarks.perf.bench_serve                       # real random-init tiny export if `occflownet
+                                                                # export` works, else the fake test model (says which)
+    python -m benchmarks.perf.bench_serve --model model.onnx    # any contract-v1 model
+    python -m benchmarks.perf.bench_serve --fake                # the fake model of tests/serve_fixtures.py
 """
 from __future__ import annotations
 
 import argparse
-import os
 import subprocess
 import sys
 import tempfile
@@ -28,15 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-FRAME = REPO.parent / "shared" / "data" / "nuscenes-frame"
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests"))
+from benchmarks.harness import REPO, SHARED_DATA, Results, add_jsonl_option, interleaved, tree_env
+from occflownet.occ3d import CAMERAS
+from occflownet.serve.client import wait_ready
+from tests.serve_fixtures import free_port
 
-from serve_fixtures import free_port  # noqa: E402
-
-from occflownet.occ3d import CAMERAS  # noqa: E402
-from occflownet.serve.client import wait_ready  # noqa: E402
+FRAME = SHARED_DATA / "nuscenes-frame"
 
 
 def rss_mib(pid: int) -> float:
@@ -69,7 +66,7 @@ def get_model(args, workdir: Path) -> tuple[Path, str]:
         if proc.returncode == 0 and out.is_file():
             return out, "random-init `tiny` export (occflownet export --preset tiny --random-init --seed 0)"
         print(f"# export unavailable ({(proc.stderr or proc.stdout).strip().splitlines()[-1:]}); using the fake model")
-    from serve_fixtures import build_fake_model
+    from tests.serve_fixtures import build_fake_model
     return build_fake_model(workdir / "fake.onnx"), "FAKE test model (tests/serve_fixtures.py), not a network"
 
 
@@ -145,31 +142,33 @@ def load_level(base: str, files: dict, concurrency: int, max_requests: int, time
             "stages": {k: p(v, 50) for k, v in stages.items()}}
 
 
-def interleaved(base: str, files: dict, direct: Direct, n: int) -> None:
+def http_vs_direct(base: str, files: dict, direct: Direct, n: int, results: Results) -> None:
+    """``n`` interleaved rounds of direct decode, direct session.run and one HTTP request → the HTTP overhead."""
     import httpx
 
-    rows = {"decode": [], "run": [], "http": [], "paired": [], "server_decode": [], "server_inference": []}
     with httpx.Client(timeout=120) as c:
-        for _ in range(n):
-            rows["decode"].append(timed(direct.decode))
-            rows["run"].append(timed(direct.infer))
-            t0 = time.perf_counter()
+        def request():
             r = c.post(f"{base}/v1/occupancy", files=files, headers={"Accept": "application/octet-stream"})
-            rows["http"].append((time.perf_counter() - t0) * 1e3)
             assert r.status_code == 200, r.text
-            st = server_timing(r.headers)
-            rows["paired"].append(rows["http"][-1] - sum(st.values()))
-            rows["server_decode"].append(st["decode"])
-            rows["server_inference"].append(st["inference"])
+            return server_timing(r.headers)
+
+        runs = interleaved({"decode": direct.decode, "run": direct.infer, "http": request}, n)
+    rows = {k: [1e3 * seconds for seconds, _ in v] for k, v in runs.items()}
+    timings = [st for _, st in runs["http"]]
+    rows["paired"] = [ms - sum(st.values()) for ms, st in zip(rows["http"], timings)]
+    rows["server_decode"] = [st["decode"] for st in timings]
+    rows["server_inference"] = [st["inference"] for st in timings]
     m = {k: p(v, 50) for k, v in rows.items()}
     vs_direct = m["http"] - m["run"] - m["server_decode"]
-    print(f"interleaved, 1 client, {n} rounds (p50 ms): direct serial decode {m['decode']:.1f}, direct session.run "
-          f"{m['run']:.1f} | HTTP request {m['http']:.1f} = server decode (6 threads) {m['server_decode']:.1f} + "
-          f"inference {m['server_inference']:.1f} + rest")
-    print(f"HTTP overhead, paired (latency - server-side stages): p50 {m['paired']:.1f} ms, "
-          f"p99 {p(rows['paired'], 99):.1f} ms = {100 * m['paired'] / m['run']:.1f} % of session.run")
-    print(f"HTTP overhead vs direct (p50 HTTP - p50 session.run - p50 server decode): {vs_direct:.1f} ms = "
-          f"{100 * vs_direct / m['run']:.1f} % of session.run (target <= 10 % plus decode)")
+    results.add({"phase": "interleaved", "rounds": n, "p50_ms": m, "paired_p99_ms": p(rows["paired"], 99),
+                 "overhead_vs_direct_ms": vs_direct},
+                f"interleaved, 1 client, {n} rounds (p50 ms): direct serial decode {m['decode']:.1f}, direct "
+                f"session.run {m['run']:.1f} | HTTP request {m['http']:.1f} = server decode (6 threads) "
+                f"{m['server_decode']:.1f} + inference {m['server_inference']:.1f} + rest\n"
+                f"HTTP overhead, paired (latency - server-side stages): p50 {m['paired']:.1f} ms, "
+                f"p99 {p(rows['paired'], 99):.1f} ms = {100 * m['paired'] / m['run']:.1f} % of session.run\n"
+                f"HTTP overhead vs direct (p50 HTTP - p50 session.run - p50 server decode): {vs_direct:.1f} ms = "
+                f"{100 * vs_direct / m['run']:.1f} % of session.run (target <= 10 % plus decode)")
 
 
 def parse_args() -> argparse.Namespace:
@@ -182,13 +181,14 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--concurrency", default="1,2,4")
     parser.add_argument("--rss-requests", type=int, default=500)
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime intra-op threads (default: cores)")
+    add_jsonl_option(parser)
     return parser.parse_args()
 
 
 def start_server(model: Path, threads: int, max_queue: int) -> tuple[subprocess.Popen, str]:
     """`occflownet serve` on a free 127.0.0.1 port → (its process, base URL), once /readyz answers 200."""
     port = free_port()
-    env = os.environ | {"OCCFLOWNET_INTRA_OP_THREADS": str(threads)}
+    env = tree_env(OCCFLOWNET_INTRA_OP_THREADS=str(threads))
     proc = subprocess.Popen([sys.executable, "-m", "occflownet", "serve", "--model", str(model), "--port", str(port),
                              "--no-access-log", "--log-level", "warning", "--max-queue", str(max_queue)],
                             env=env, cwd=REPO)
@@ -202,29 +202,32 @@ def start_server(model: Path, threads: int, max_queue: int) -> tuple[subprocess.
     return proc, base
 
 
-def direct_phases(base: str, files: dict, model: Path, threads: int, rounds: int) -> None:
+def direct_phases(base: str, files: dict, model: Path, threads: int, rounds: int, results: Results) -> None:
     """The interleaved HTTP-vs-direct comparison, then micro-batching (B=2 vs two B=1 runs) on the direct session."""
     direct = Direct(model, threads)
-    interleaved(base, files, direct, rounds)
+    http_vs_direct(base, files, direct, rounds, results)
     one = [timed(direct.infer) for _ in range(5)]
     two = [timed(direct.batch2) for _ in range(5)]
-    print(f"micro-batching: session.run B=2 p50 {p(two, 50):.1f} ms vs B=1 {p(one, 50):.1f} ms "
-          f"({p(two, 50) / (2 * p(one, 50)):.2f} x two B=1 runs)")
+    results.add({"phase": "micro-batching", "b1_p50_ms": p(one, 50), "b2_p50_ms": p(two, 50)},
+                f"micro-batching: session.run B=2 p50 {p(two, 50):.1f} ms vs B=1 {p(one, 50):.1f} ms "
+                f"({p(two, 50) / (2 * p(one, 50)):.2f} x two B=1 runs)")
 
 
-def load_phases(base: str, files: dict, levels: list[int], args) -> int:
+def load_phases(base: str, files: dict, levels: list[int], args, results: Results) -> int:
     """Throughput and latency per concurrency level, then JSON and PNG answers at one client → requests done."""
     done = 0
     for c in levels:
         res = load_level(base, files, c, args.requests, args.time_limit)
         done += res["ok"]
         stages = ", ".join(f"{k} {v:.1f}" for k, v in res["stages"].items())
-        print(f"c={c}: {res['ok']} ok {res['statuses']} in {res['wall_s']:.1f} s: {res['rps']:.2f} req/s, "
-              f"p50 {res['p50']:.1f} ms, p99 {res['p99']:.1f} ms; server-side p50 (ms): {stages}")
+        results.add({"phase": "load", **res}, f"c={c}: {res['ok']} ok {res['statuses']} in {res['wall_s']:.1f} s: "
+                    f"{res['rps']:.2f} req/s, p50 {res['p50']:.1f} ms, p99 {res['p99']:.1f} ms; server-side p50 (ms): "
+                    f"{stages}")
     for accept in ("application/json", "image/png"):
         r = load_level(base, files, 1, 10, args.time_limit, accept)
         done += r["ok"]
-        print(f"c=1 Accept {accept}: p50 {r['p50']:.1f} ms, server encode p50 {r['stages']['encode']:.1f} ms")
+        results.add({"phase": "answer format", "accept": accept, **r},
+                    f"c=1 Accept {accept}: p50 {r['p50']:.1f} ms, server encode p50 {r['stages']['encode']:.1f} ms")
     return done
 
 
@@ -239,7 +242,7 @@ def load_until(base: str, files: dict, done: int, total: int, time_limit: float)
     return done
 
 
-def print_server_means(base: str) -> None:
+def server_means(base: str, results: Results) -> None:
     """Mean server-side time per stage over every request, from the server's own /metrics histograms."""
     import httpx
 
@@ -248,10 +251,12 @@ def print_server_means(base: str) -> None:
             if line.startswith("occflownet_stage_duration_seconds_sum")}
     count = next(float(line.split()[-1]) for line in text.splitlines()
                  if line.startswith('occflownet_stage_duration_seconds_count{stage="inference"}'))
-    print("server means over all requests (ms): " + ", ".join(f"{k} {1e3 * v / count:.1f}" for k, v in sums.items()))
+    means = {k: 1e3 * v / count for k, v in sums.items()}
+    results.add({"phase": "server means", "ms": means},
+                "server means over all requests (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in means.items()))
 
 
-def run_benchmark(args, model: Path, threads: int) -> None:
+def run_benchmark(args, model: Path, threads: int, results: Results) -> None:
     """Every phase against one server process (module docstring), in order."""
     files = {cam: (f"{cam}.jpg", (FRAME / f"{cam}.jpg").read_bytes(), "image/jpeg") for cam in CAMERAS}
     files["calibration"] = ("calib.json", (FRAME / "calib.json").read_bytes(), "application/json")
@@ -260,13 +265,14 @@ def run_benchmark(args, model: Path, threads: int) -> None:
     try:
         first = load_level(base, files, 1, 10, args.time_limit)
         rss_10, done = rss_mib(proc.pid), first["ok"]
-        direct_phases(base, files, model, threads, args.rounds)
+        direct_phases(base, files, model, threads, args.rounds, results)
         done += args.rounds
-        done += load_phases(base, files, levels, args)
+        done += load_phases(base, files, levels, args, results)
         done = load_until(base, files, done, args.rss_requests, args.time_limit)
-        print(f"server RSS: {rss_10:.0f} MiB after 10 requests, {rss_mib(proc.pid):.0f} MiB after {done} "
-              f"requests; load average at end {os.getloadavg()[0]:.2f}")
-        print_server_means(base)
+        rss = rss_mib(proc.pid)
+        results.add({"phase": "memory", "rss_mib_after_10": rss_10, "rss_mib": rss, "requests": done},
+                    f"server RSS: {rss_10:.0f} MiB after 10 requests, {rss:.0f} MiB after {done} requests")
+        server_means(base, results)
     finally:
         proc.terminate()
         proc.wait(30)
@@ -284,9 +290,10 @@ def main() -> int:
     threads = args.threads or available_cores()
     with tempfile.TemporaryDirectory() as tmp:
         model, which = get_model(args, Path(tmp))
-        print(f"# model: {which}; {model.stat().st_size / 1e6:.1f} MB; {available_cores()} cores; intra-op threads "
-              f"{threads}; load average at start {os.getloadavg()[0]:.2f}")
-        run_benchmark(args, model, threads)
+        results = Results("bench_serve", args.jsonl)
+        results.note(f"# model: {which}; {model.stat().st_size / 1e6:.1f} MB; {available_cores()} cores; intra-op "
+                     f"threads {threads}")
+        run_benchmark(args, model, threads, results)
     return 0
 
 

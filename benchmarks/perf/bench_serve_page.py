@@ -4,10 +4,11 @@ Starts ``occflownet serve`` (a real uvicorn process) with the tests' briefly tra
 opens ``/ui`` in the browser of the tests (``tests/browser.py``: SwiftShader WebGL), sends the real nuScenes frame
 (six JPEGs and calib.json) once to warm up, then measures, interleaved and in alternating order, the API's round
 trip of the same request by httpx and the page's (click → answer on screen: top-down picture and latencies; then →
-3D view drawn, its first frame read back): ``--pairs`` pairs a round, ``--rounds`` rounds, each pair printed, and
-per round the median over its pairs of page − API. Target: the page adds ≤ 150 ms until the answer is on screen.
+3D view drawn, its first frame read back), ``benchmarks.harness.interleaved``: ``--pairs`` pairs a round,
+``--rounds`` rounds, each pair printed, and per round the median over its pairs of page − API with the load average
+and the float32 matmul rate (appended to ``--jsonl``). Target: the page adds ≤ 150 ms until the answer is on screen.
 
-    python benchmarks/bench_serve_page.py [--model model.onnx] [--pairs 5] [--rounds 3]
+    python -m benchmarks.perf.bench_serve_page [--model model.onnx] [--pairs 5] [--rounds 3] [--jsonl PATH]
 """
 from __future__ import annotations
 
@@ -17,14 +18,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests"))
-
-from browser import browser, setup_browser, wait_for  # noqa: E402
-from serve_fixtures import free_port, post_frame, send_from_page, stop_server  # noqa: E402
-
-from occflownet.serve.client import wait_ready  # noqa: E402
+from benchmarks.harness import REPO, Results, add_jsonl_option, interleaved, tree_env
+from occflownet.serve.client import wait_ready
+from tests.browser import browser, setup_browser, wait_for
+from tests.serve_fixtures import free_port, post_frame, send_from_page, stop_server
 
 TARGET_MS = 150.0
 
@@ -33,12 +30,8 @@ def one_round(server: str, page, pairs: int) -> dict[str, float]:
     """``pairs`` interleaved pairs, the order alternating → {"shown", "drawn", "api"}: medians over the pairs of
     page − API (answer on screen, 3D view drawn) and of the API's round trip, in ms."""
     rows = []
-    for i in range(pairs):
-        if i % 2:
-            last, api_ms = send_from_page(page), post_frame(server)[1]
-        else:
-            api_ms = post_frame(server)[1]
-            last = send_from_page(page)
+    runs = interleaved({"api": lambda: post_frame(server)[1], "page": lambda: send_from_page(page)}, pairs)
+    for (_, api_ms), (_, last) in zip(runs["api"], runs["page"]):
         assert last["ok"] and last["status"] == 200, last
         rows.append((api_ms, last["shownMs"], last["drawnMs"]))
         t = last["viewer"]["timings"]
@@ -56,17 +49,19 @@ def main() -> None:
     parser.add_argument("--model", help="contract-v1 ONNX model (default: the tests' briefly trained tiny export)")
     parser.add_argument("--pairs", type=int, default=5)
     parser.add_argument("--rounds", type=int, default=3)
+    add_jsonl_option(parser)
     args = parser.parse_args()
+    results = Results("bench_serve_page", args.jsonl)
     if args.model:
         model = Path(args.model)
     else:
-        from exported_models import exported_trained_tiny
+        from tests.exported_models import exported_trained_tiny
 
         model = exported_trained_tiny()[0]
     setup_browser()
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "occflownet", "serve", "--model", str(model), "--port", str(port),
-                             "--no-access-log", "--log-level", "warning"], cwd=REPO)
+                             "--no-access-log", "--log-level", "warning"], cwd=REPO, env=tree_env())
     server = f"http://127.0.0.1:{port}"
     try:
         wait_ready(server, 120, proc=proc)
@@ -77,9 +72,11 @@ def main() -> None:
             for r in range(args.rounds):
                 print(f"round {r + 1}:")
                 result = one_round(server, page, args.pairs)
-                print(f"round {r + 1}: API round trip p50 {result['api']:.0f} ms; the page adds {result['shown']:.0f} "
-                      f"ms to the answer on screen (target ≤ {TARGET_MS:.0f} ms), {result['drawn']:.0f} ms to the "
-                      f"3D view drawn (medians of {args.pairs} pairs)")
+                results.add({"round": r + 1, "pairs": args.pairs, "api_ms": result["api"],
+                             "page_adds_shown_ms": result["shown"], "page_adds_drawn_ms": result["drawn"]},
+                            f"round {r + 1}: API round trip p50 {result['api']:.0f} ms; the page adds "
+                            f"{result['shown']:.0f} ms to the answer on screen (target ≤ {TARGET_MS:.0f} ms), "
+                            f"{result['drawn']:.0f} ms to the 3D view drawn (medians of {args.pairs} pairs)")
     finally:
         stop_server(proc)
 

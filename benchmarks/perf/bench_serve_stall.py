@@ -7,15 +7,15 @@ Starts `occflownet serve` (a real uvicorn process; the fake test model unless ``
    1,000 bytes of its body, then nothing; once the server counts them, the same valid requests again;
 3. when the stalled connections are answered (the body deadline) and with what;
 4. ``--stalled`` new stalled connections, then SIGTERM: how long until the process has exited, and what they got.
-Every wait is bounded (60 s, or the body deadline plus 30 s).
+Every wait is bounded (60 s, or the body deadline plus 30 s). Each line ends with the load average and the float32
+matmul rate; the lines are appended to ``--jsonl`` as they come.
 
-    python benchmarks/bench_serve_stall.py                            # defaults: 5 stalled, body timeout 30 s
-    python benchmarks/bench_serve_stall.py --workers 2 --body-timeout 5
+    python -m benchmarks.perf.bench_serve_stall                       # defaults: 5 stalled, body timeout 30 s
+    python -m benchmarks.perf.bench_serve_stall --workers 2 --body-timeout 5
 """
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import subprocess
 import sys
@@ -23,14 +23,10 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests"))
-
-from serve_fixtures import (build_fake_model, free_port, image_files, metric_samples, read_answer,  # noqa: E402
-                            stalled_upload, stop_server, synthetic_images)
-
-from occflownet.serve.client import wait_ready  # noqa: E402
+from benchmarks.harness import REPO, Results, add_jsonl_option, tree_env
+from occflownet.serve.client import wait_ready
+from tests.serve_fixtures import (build_fake_model, free_port, image_files, metric_samples, read_answer,
+                                  stalled_upload, stop_server, synthetic_images)
 
 
 def valid_requests(base: str, count: int) -> str:
@@ -76,35 +72,42 @@ def main() -> None:
     parser.add_argument("--requests", type=int, default=3)
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--body-timeout", type=float, default=30.0)
+    add_jsonl_option(parser)
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench-serve-stall-") as work:
         run(args, Path(work))
 
 
 def run(args, work: Path) -> None:
+    results = Results("bench_serve_stall", args.jsonl)
     model = Path(args.model) if args.model else build_fake_model(work / "fake.onnx")
     port = free_port()
     base = f"http://127.0.0.1:{port}"
     proc = subprocess.Popen([sys.executable, "-m", "occflownet", "serve", "--model", str(model), "--port", str(port),
                              "--workers", str(args.workers), "--body-timeout", str(args.body_timeout),
                              "--no-access-log", "--log-level", "warning"], cwd=REPO,
-                            env=os.environ | {"PROMETHEUS_MULTIPROC_DIR": str(work / "metrics")})
+                            env=tree_env(PROMETHEUS_MULTIPROC_DIR=str(work / "metrics")))
     try:
         wait_ready(base, 60, proc)
         print(f"model {model.name}, {args.workers} worker(s), body timeout {args.body_timeout:g} s")
-        print(f"no other client:        {valid_requests(base, args.requests)}")
+        alone = valid_requests(base, args.requests)
+        results.add({"phase": "no other client", "requests": alone}, f"no other client:        {alone}")
         socks = stall(base, port, args.stalled)
         t_stall = time.monotonic()
-        print(f"{args.stalled} uploads stalled:    {valid_requests(base, args.requests)}")
+        stalled = valid_requests(base, args.requests)
+        results.add({"phase": "uploads stalled", "stalled": args.stalled, "requests": stalled},
+                    f"{args.stalled} uploads stalled:    {stalled}")
         answers = [read_answer(s, args.body_timeout + 30 - (time.monotonic() - t_stall)) for s in socks]
-        print(f"stalled uploads answered {time.monotonic() - t_stall:.1f} s after they stalled: "
-              f"{status_line(answers[0])}")
+        after, answer = time.monotonic() - t_stall, status_line(answers[0])
+        results.add({"phase": "stalled answered", "seconds": after, "answer": answer},
+                    f"stalled uploads answered {after:.1f} s after they stalled: {answer}")
         socks = stall(base, port, args.stalled)
         t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         proc.wait(60)
-        print(f"SIGTERM with {args.stalled} stalled uploads: exited after {time.monotonic() - t0:.2f} s; they got "
-              f"{status_line(read_answer(socks[0], 5))}")
+        exited, answer = time.monotonic() - t0, status_line(read_answer(socks[0], 5))
+        results.add({"phase": "SIGTERM", "stalled": args.stalled, "seconds": exited, "answer": answer},
+                    f"SIGTERM with {args.stalled} stalled uploads: exited after {exited:.2f} s; they got {answer}")
     finally:
         stop_server(proc)
 

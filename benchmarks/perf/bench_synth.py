@@ -1,10 +1,11 @@
 """Speed of `occflownet synth` at default settings: seconds per keyframe (6 images + LiDAR keyframe and sweeps +
 geometric truth + files + the label pipeline's Occ3D gt).
 
-    python benchmarks/bench_synth.py [--scenes 1 --frames 6 --width 480 --height 270 --preview]
+    python -m benchmarks.perf.bench_synth [--scenes 1 --frames 6 --width 480 --height 270 --preview] [--jsonl PATH]
 
 Prints wall-clock and CPU (process) seconds per keyframe for a whole `generate` run (tables and files included),
-then a per-stage breakdown for one keyframe. CPU time is printed too because the machine may be shared.
+then a per-stage breakdown for one keyframe, each with the load average and the float32 matmul rate (appended to
+``--jsonl``). CPU time is printed too because the machine may be shared.
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import time
 
 import numpy as np
 
+from benchmarks.harness import Results, add_jsonl_option
 from occflownet.synth.camera import render_camera
 from occflownet.synth.frame import SensorRig
 from occflownet.synth.generate import DEFAULT_SWEEPS, generate
@@ -55,19 +57,23 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--sweeps", type=int, default=DEFAULT_SWEEPS)
     ap.add_argument("--preview", action="store_true")
+    add_jsonl_option(ap)
     args = ap.parse_args(argv)
+    results = Results("bench_synth", args.jsonl)
     n = args.scenes * args.frames
     with tempfile.TemporaryDirectory() as tmp:
         wall, cpu = time.perf_counter(), time.process_time()
         generate(tmp, scenes=args.scenes, frames=args.frames, seed=args.seed, width=args.width, height=args.height,
                  preview=args.preview, progress=False, sweeps=args.sweeps)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-    print(f"generate: {n} keyframes at {args.width}x{args.height}, {args.sweeps} sweeps between keyframes"
-          f"{', with previews' if args.preview else ''}, labels included: "
-          f"{wall / n:.3f} s/keyframe wall, {cpu / n:.3f} s/keyframe CPU (the labels alone: benchmarks/labels_stats.py)")
-    print("one keyframe by stage (median of 3):")
-    for name, sec in stage_times(args.width, args.height, args.seed).items():
-        print(f"  {name:24s} {sec:.3f} s")
+    results.add({"keyframes": n, "width": args.width, "height": args.height, "sweeps": args.sweeps,
+                 "preview": args.preview, "wall_s_per_keyframe": wall / n, "cpu_s_per_keyframe": cpu / n},
+                f"generate: {n} keyframes at {args.width}x{args.height}, {args.sweeps} sweeps between keyframes"
+                f"{', with previews' if args.preview else ''}, labels included: {wall / n:.3f} s/keyframe wall, "
+                f"{cpu / n:.3f} s/keyframe CPU (the labels alone: benchmarks/studies/labels_stats.py)")
+    stages = stage_times(args.width, args.height, args.seed)
+    results.add({"stage_seconds": stages}, "one keyframe by stage (median of 3):\n"
+                + "\n".join(f"  {name:24s} {sec:.3f} s" for name, sec in stages.items()))
     return 0
 
 

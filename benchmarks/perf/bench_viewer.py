@@ -1,15 +1,17 @@
-"""The figures of docs/serve.md's "3D viewer" section: size, time to the first frame and frame rate while orbiting
+"""The 3D viewer's figures (docs/serve.md): size, time to the first frame and frame rate while orbiting
 of a viewer file in headless Chromium (SwiftShader WebGL, the browser tests' flags), for a grid of 60,000 occupied
 voxels, and the same for the plotly alternatives the choice was made against (when plotly is installed:
 ``pip install plotly``; it is no dependency of the project).
 
-    python benchmarks/bench_viewer.py [--voxels 60000] [--runs 3] [--out DIR]
+    python -m benchmarks.perf.bench_viewer [--voxels 60000] [--runs 3] [--out DIR] [--no-plotly] [--jsonl PATH]
 
 The 60,000-voxel grid is the real Occ3D sample (../shared/data/occ3d-sample/labels.npz, 39,092 occupied voxels)
 with columns under its vegetation and buildings filled towards the ground until the count is reached (a denser
 street than the sample, like a prediction that fills what it cannot see). Per run, a fresh browser: "open" is
 from ``driver.get`` to the viewer's drawn flag (wall clock), "first frame" the page's own time from navigation
-start to its first frame read back; fps = frames drawn while the camera circles the scene for 3 s.
+start to its first frame read back; fps = frames drawn while the camera circles the scene for 3 s. Prints a markdown
+table, one row per viewer (medians over the runs) with the load average and the float32 matmul rate (appended to
+``--jsonl``).
 """
 from __future__ import annotations
 
@@ -22,16 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests"))
+from benchmarks.harness import SHARED_DATA, Results, add_jsonl_option
+from occflownet.occ3d import CLASS_COLORS, FREE, GRID, MANMADE, VEGETATION
+from occflownet.viewer import ViewGrid, read_grid, write_viewer
+from tests.browser import browser, setup_browser, wait_for
 
-from browser import browser, setup_browser, wait_for  # noqa: E402
-
-from occflownet.occ3d import CLASS_COLORS, FREE, GRID, MANMADE, VEGETATION  # noqa: E402
-from occflownet.viewer import ViewGrid, read_grid, write_viewer  # noqa: E402
-
-LABELS = REPO.parent / "shared" / "data" / "occ3d-sample" / "labels.npz"
+LABELS = SHARED_DATA / "occ3d-sample" / "labels.npz"
 
 
 def dense_grid(n: int) -> np.ndarray:
@@ -139,7 +137,9 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--out", type=Path, default=None, help="keep the files here (default: a temporary folder)")
     ap.add_argument("--no-plotly", action="store_true")
+    add_jsonl_option(ap)
     args = ap.parse_args()
+    results = Results("bench_viewer", args.jsonl)
     setup_browser()
     folder = args.out or Path(tempfile.mkdtemp(prefix="occflownet-bench-viewer-"))
     occ = dense_grid(args.voxels)
@@ -151,14 +151,15 @@ def main() -> int:
         except ImportError:
             print("plotly not installed: only the three.js viewer is measured", file=sys.stderr)
     print(f"{args.voxels} occupied voxels, {args.runs} runs each, fresh browser per run; files in {folder}")
-    print("| viewer | file size | open (get → drawn) | first frame (in page) | fps orbiting |")
-    print("|---|---:|---:|---:|---:|")
+    print("| viewer | file size | open (get → drawn) | first frame (in page) | fps orbiting | machine |")
+    print("|---|---:|---:|---:|---:|---|")
     for name, path in files.items():
         m = measure_three(path, args.runs) if path.name == "viewer.html" else measure_plotly(path, args.runs)
         med = {k: statistics.median(v) for k, v in m.items() if isinstance(v, list)}
         extra = f" ({m['faces']} faces)" if "faces" in m else ""
-        print(f"| {name}{extra} | {path.stat().st_size / 2**20:.2f} MiB | {med['open_s']:.2f} s "
-              f"(max {max(m['open_s']):.2f}) | {med['first_frame_s']:.2f} s | {med['fps']:.1f} |", flush=True)
+        results.add({"viewer": name, "voxels": args.voxels, "bytes": path.stat().st_size, **m},
+                    f"| {name}{extra} | {path.stat().st_size / 2**20:.2f} MiB | {med['open_s']:.2f} s "
+                    f"(max {max(m['open_s']):.2f}) | {med['first_frame_s']:.2f} s | {med['fps']:.1f} |")
     return 0
 
 

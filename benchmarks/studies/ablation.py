@@ -4,8 +4,9 @@ scored on a val world, one budget per run.
     occflownet synth --out W/train --scenes 8 --frames 40 --seed 0 && occflownet prepare --dataroot W/train
     occflownet synth --out W/val --scenes 2 --frames 40 --seed 1000 && occflownet prepare --dataroot W/val
     python -m benchmarks.studies.ablation --train W/train --val W/val --out W/runs --steps 200
-    python -m benchmarks.studies.ablation --train W/train --val W/val --out W/runs --steps 200 --rows 2,3,4,5,6 --rendering
-    python -m benchmarks.studies.ablation --train W/train --val W/val --out W/runs --recipes paper --variant fp32 --extra "--precision fp32"
+    python -m benchmarks.studies.ablation --train W/train --val W/val --out W/runs --rows 2,3,4,5,6 --rendering
+    python -m benchmarks.studies.ablation --train W/train --val W/val --out W/runs --recipes paper \
+        --variant fp32 --extra "--precision fp32"
 
 The runs are recipes of ``occflownet/train/recipes.py``: ``--rows 1,5`` picks rows of the paper's ablation ladder
 (``recipes.ladder()``: 1 ``paper-3d`` … 7 ``paper-2d3d``; 8, 9 add free-space beams), ``--recipes`` names recipes
@@ -296,7 +297,8 @@ def _fog_lines(rows: list[dict]) -> list[str]:
             cam, crossed, never = fog["camera_mask"], fog["crossed"], fog["never_crossed"]
             lines.append(f"| {_label(r)} | {r.get('seed', 0)} | {_pct(cam['labelled_fraction'])} % | "
                          f"{_pct(cam['predicted_fraction'])} % | {_ratio(cam['fog_factor'])} | "
-                         f"{_ratio(crossed['fog_factor'])} | {_ratio(never['fog_factor'])} | {never['false_positive']} |")
+                         f"{_ratio(crossed['fog_factor'])} | {_ratio(never['fog_factor'])} | "
+                         f"{never['false_positive']} |")
     return lines
 
 

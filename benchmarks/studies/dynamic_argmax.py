@@ -1,6 +1,6 @@
 """How much of the volume a checkpoint labels with a class of the dynamic filter set (argmax of the 17 logits).
 
-    python benchmarks/dynamic_argmax.py --val W/val RUN_DIR [RUN_DIR ...] [--samples 4]
+    python -m benchmarks.studies.dynamic_argmax --val W/val RUN_DIR [RUN_DIR ...] [--samples 4]
 
 For each run (``RUN_DIR/checkpoints/last.pt``, EMA weights) and a few validation keyframes spread over the split,
 prints the percentage of voxels whose argmax class is in ``occ3d.DYNAMIC_FILTER_CLASSES``: over all voxels, over

@@ -1,8 +1,9 @@
 """Where a trained model's errors lie on the keyframes it was trained on (the fitting protocol's runs,
-``benchmarks/fitting.py``): what the labelled voxels of each class are predicted as, where the false positives lie
-relative to the labelled surfaces, and where the light of the training rays stops, by the class of their point.
+``benchmarks/studies/fitting.py``): what the labelled voxels of each class are predicted as, where the false
+positives lie relative to the labelled surfaces, and where the light of the training rays stops, by the class of
+their point.
 
-    python benchmarks/fit_errors.py --run F/VARIANT/seed0/row5 --world F/world [--keyframes 2,5]
+    python -m benchmarks.studies.fit_errors --run F/recipe/seed0/recommended --world F/world [--keyframes 2,5]
 
 Prints, over every keyframe of the world, inside ``mask_camera`` (EMA weights, the run's τ):
 

@@ -73,9 +73,9 @@ def _best_tau(record: dict) -> str:
 
 def tables(results: Path, ratio: tuple[str, str]) -> str:
     records = sorted(read_jsonl(results), key=lambda r: (r["steps"], *record_key(r)))
-    lines = ["| steps | recipe | variant | seed | mIoU | geometry IoU | at best τ | fog (mask_camera) | fog (crossed) | "
-             "fog (never crossed) | " + " | ".join(CLASSES) + " |", "|---|---|---|---|---|---|---|---|---|---|"
-             + "---|" * len(CLASSES)]
+    lines = ["| steps | recipe | variant | seed | mIoU | geometry IoU | at best τ | fog (mask_camera) | "
+             "fog (crossed) | fog (never crossed) | " + " | ".join(CLASSES) + " |",
+             "|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(CLASSES)]
     for r in records:
         variant, recipe, seed, steps = record_key(r)
         cam = r["metrics"]["occupancy"]["camera_mask"]

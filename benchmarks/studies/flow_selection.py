@@ -18,9 +18,9 @@ keyframe of a split and every move of its flow record (t ∈ [-O, O] \\ {0}):
   into frame t; the rest end on objects flow cannot move (no box, or a box not matched at t = 0). LiDAR points on
   a vehicle lie on its box's faces, so at margin 0 about a third fall just outside it.
 
-    python benchmarks/flow_selection.py --checkpoint RUN/checkpoints/last.pt --dataroot WORLD [--split all]
+    python -m benchmarks.studies.flow_selection --checkpoint RUN/checkpoints/last.pt --dataroot WORLD [--split all]
         [--horizon 3] [--margin 0.2]
-    python benchmarks/flow_selection.py --dataroot WORLD      # ray coverage only
+    python -m benchmarks.studies.flow_selection --dataroot WORLD      # ray coverage only
 """
 from __future__ import annotations
 

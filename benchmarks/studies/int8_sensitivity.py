@@ -1,7 +1,7 @@
 """Per-layer int8 sensitivity of an exported fp32 graph: what quantising each node that today's int8 variant keeps
 in float32 would cost in agreement with fp32.
 
-    python benchmarks/int8_sensitivity.py --onnx M.onnx --out DIR [--frame DIR] [--int8-range reduced|full]
+    python -m benchmarks.studies.int8_sensitivity --onnx M.onnx --out DIR [--frame DIR] [--int8-range reduced|full]
 
 Today's int8 variant (``export/variants.py``: the image convolutions in int8; the 3D decoder's convolutions, the
 per-voxel Gemms and the image resampling MatMuls in float32) is the first row. Then each decoder convolution and
@@ -10,7 +10,7 @@ convolution and Gemm. Each graph is calibrated as the variant is (the frame's va
 fp32 graph on the frame as the inference paths decode it: occupancy voxels equal, occupied voxels whose class
 changed (of the fp32 occupied ones), density max |Δ|. The equal fraction counts every voxel, free ones included;
 the occupied-voxel figure is the stricter one. One JSON line per graph is appended to ``OUT/sensitivity.jsonl`` as
-it comes. Speed is not measured here: ``bench_inference.py --profile`` gives each node's kernel time.
+it comes. Speed is not measured here: ``benchmarks/bench_inference.py --profile`` gives each node's kernel time.
 """
 from __future__ import annotations
 
@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-FRAME = ROOT.parent / "shared" / "data" / "nuscenes-frame"
+from benchmarks.harness import SHARED_DATA, append_jsonl
+
+FRAME = SHARED_DATA / "nuscenes-frame"
 
 
 def main(argv=None) -> int:
@@ -77,8 +77,7 @@ def main(argv=None) -> int:
                 "occupied_pct": round(100 * float(np.mean(occ != FREE)), 3),
                 "density_max_abs_diff": round(a["density_max_abs_diff"], 4), "seconds": round(time.perf_counter() - t)}
         print(json.dumps(line), flush=True)
-        with open(out / "sensitivity.jsonl", "a") as f:
-            f.write(json.dumps(line) + "\n")
+        append_jsonl(out / "sensitivity.jsonl", line)
         dst.unlink()
     return 0
 

@@ -2,13 +2,13 @@
 free; the labels' classes as logits) along its own training rays (t = 0) under several readings of σ, and compare
 with the LiDAR: the depth error and the opacity the labels would render if a model predicted them exactly.
 
-    python benchmarks/label_render.py --dataroot W [--rays 4096] [--positions 1,3,5]
+    python -m benchmarks.studies.label_render --dataroot W [--rays 4096] [--positions 1,3,5]
 
-Rows: ``density`` (the official reading: σ per metre, scaled by ``--density-scale`` k = 1, 2, 4, 8, 16; σ = 1 at
-occupied voxels) and ``opacity`` (σ = the share of the light a voxel stops, at 0.5, 0.9, 0.99). Columns: median
-weight sum (and the share of rays below 0.5), median rendered depth − LiDAR depth (Σ w t, and Σ w t ÷ Σ w), median
-|error|, and the share of rays that render their LiDAR class. A reading under which the labels render the LiDAR
-depth is one whose optimum the labels can be; docs/results.md quotes the figures.
+Rows: ``density`` (the official reading: σ per metre, scaled by k = 1, 2, 4, 8, 16: ``RenderConfig.density_scale``;
+σ = 1 at occupied voxels) and ``opacity`` (σ = the share of the light a voxel stops, at 0.5, 0.9, 0.99). Columns:
+median weight sum (and the share of rays below 0.5), median rendered depth − LiDAR depth (Σ w t, and Σ w t ÷ Σ w),
+median |error|, and the share of rays that render their LiDAR class. A reading under which the labels render the
+LiDAR depth is one whose optimum the labels can be; docs/results.md quotes the figures.
 """
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 frame labelled geometry-only, and of synthetic worlds labelled by the pipeline; the synthetic labels against the
 world's geometric truth; and the labeller's speed on a 40-keyframe scene.
 
-    python benchmarks/labels_stats.py [--world DIR ...] [--speed-frames 40] [--no-speed]
+    python -m benchmarks.studies.labels_stats [--world DIR ...] [--speed-frames 40] [--no-speed]
 
 Without --world, a fresh 1 scene × 8 keyframe world (seed 0, 480 × 270) is generated in a temporary folder.
 """
@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.harness import SHARED_DATA
 from occflownet.data.builder import build_index
 from occflownet.data.frame_root import write_frame_root
 from occflownet.data.loaders import load_occupancy
@@ -22,7 +23,7 @@ from occflownet.labels import LabelConfig, label_root
 from occflownet.labels.stats import label_stats, mean_stats, truth_agreement
 from occflownet.synth.generate import generate, load_truth
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED = SHARED_DATA
 ROWS = (("voxels in mask_camera", "mask_camera", "{:,.0f}"), ("share of the grid", "mask_camera_share", "{:.1%}"),
         ("mask_camera outside mask_lidar", "mask_camera_outside_lidar", "{:,.0f}"),
         ("occupied in mask_camera", "occupied_in_camera", "{:,.0f}"),

@@ -2,7 +2,7 @@
 end on a class, and how many pass through a labelled voxel of that class well before their point (they tell the
 renderer "free" where the labels say "occupied"), with and without ``--box-line-of-sight`` (docs/data.md).
 
-    python benchmarks/ray_sight.py --dataroot ROOT [--positions 2,5] [--classes car,bus,truck] [--rays 4000]
+    python -m benchmarks.studies.ray_sight --dataroot ROOT [--positions 2,5] [--classes car,bus,truck] [--rays 4000]
 
 A ray "passes through" class c when a point sampled every 5 cm on it, more than ``--before`` metres before its end,
 lies in a voxel labelled c (the keyframe's Occ3D labels, current ego frame). Counts of passing rays are estimated

@@ -2,7 +2,7 @@
 camera, the rendered depth, opacity and semantics through every ``--step``-th pixel, and the LiDAR points of that
 camera (their depth and class), plus the per-ray figures at the LiDAR pixels (the training rays of t = 0).
 
-    python benchmarks/render_pictures.py --run RUN --dataroot W [--sample 0] [--camera 0] [--out render.png]
+    python -m benchmarks.studies.render_pictures --run RUN --dataroot W [--sample 0] [--camera 0] [--out render.png]
 
 RUN is a training run folder (``checkpoints/last.pt`` and ``train_config.json``: the rendering reads σ as the run
 did, ``sigma_is``). The picture: top row camera image | LiDAR depth | rendered depth (Σ w t ÷ Σ w, where Σ w > 0.05);

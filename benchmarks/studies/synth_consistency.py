@@ -1,6 +1,6 @@
 """Consistency figures of the synthetic world: do LiDAR labels, the geometric truth and image depth agree?
 
-    python benchmarks/synth_consistency.py [--scenes 2 --frames 6 --seed 0 --width 480 --height 270]
+    python -m benchmarks.studies.synth_consistency [--scenes 2 --frames 6 --seed 0 --width 480 --height 270]
 
 Prints, over all keyframes:
 - LiDAR → truth: share of keyframe LiDAR points inside the grid whose voxel in the geometric truth has the point's own

@@ -1,7 +1,7 @@
 """Geometry IoU, Occ3D mIoU and per-class IoU inside mask_camera as functions of the fusion threshold τ, for one
 checkpoint on one split.
 
-    python benchmarks/threshold_sweep.py --checkpoint RUN/checkpoints/last.pt --dataroot W [--split all]
+    python -m benchmarks.studies.threshold_sweep --checkpoint RUN/checkpoints/last.pt --dataroot W [--split all]
         [--every 1] [--classes car,bus,truck,manmade]
 
 Shows whether a model that scores low at its stored τ has learned geometry whose σ lies on another scale (the
