@@ -1,4 +1,4 @@
-"""Headless Chromium for the browser tests and benchmarks/bench_viewer.py: Debian's ``chromium`` and
+"""Headless Chromium for the browser tests and benchmarks/perf/bench_viewer.py: Debian's ``chromium`` and
 ``chromium-driver`` (installed by ``scripts/setup-browser``) driven by selenium, with WebGL through SwiftShader
 (software, any machine) and every background service of the browser off, so that it reaches nothing but the pages
 it is sent to.

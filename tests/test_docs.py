@@ -1,7 +1,8 @@
 """The README and docs/ describe today's tools: every `occflownet ...` command line of a code block parses with
 today's command line, every `occflownet VERB --option` named in the prose is an option of that verb, every
-`python benchmarks/...` script they name exists and has the options they give it, every relative link (and its
-#anchor) resolves, and every recipe's docs page exists. Commands with placeholders in brackets (`[--seed S]`),
+benchmark they run (`python -m benchmarks.perf.NAME`, `python -m benchmarks.studies.NAME`, `python benchmarks/X.py`)
+exists and has the options they give it (in its own file or the shared benchmarks/harness.py), every relative link
+(and its #anchor) resolves, and every recipe's docs page exists. Commands with placeholders in brackets (`[--seed S]`),
 alternatives (`a|b`), ellipses or a placeholder verb (`occflownet VERB --help`) are usage summaries, not command
 lines, and are skipped; one- or two-letter capitals (`--seed S`) are placeholders; a span like
 `occflownet serve: ...` is a message the tools print."""
@@ -16,6 +17,7 @@ from occflownet.cli import build_parser
 REPO = Path(__file__).resolve().parents[1]
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md")), *sorted(REPO.glob("*/README.md"))]
 USAGE = re.compile(r"[\[\]|<>…]|\.\.\.")
+BENCHMARK = ("python benchmarks/", "python -m benchmarks.")
 
 
 def _commands(text: str) -> list[tuple[str, bool]]:
@@ -36,8 +38,9 @@ def _commands(text: str) -> list[tuple[str, bool]]:
         command = pending.strip().lstrip("$ ").split(" # ")[0].split("  #")[0].strip()
         found += [(part.strip(), True) for part in re.split(r"&&|;", command)]
         pending = ""
-    found += [(" ".join(span.split()), False) for span in re.findall(r"`((?:occflownet|python benchmarks/)[^`]*)`", text)]
-    return [(c, whole) for c, whole in found if c.startswith(("occflownet ", "python benchmarks/"))]
+    spans = re.findall(r"`((?:occflownet|python benchmarks/|python -m benchmarks\.)[^`]*)`", text)
+    found += [(" ".join(span.split()), False) for span in spans]
+    return [(c, whole) for c, whole in found if c.startswith(("occflownet ", *BENCHMARK))]
 
 
 def _cases():
@@ -69,11 +72,12 @@ def test_every_command_line_in_the_docs_parses(page, command, whole):
         unknown = [w for w in words[2:] if w.startswith("--") and w.split("=")[0] not in options]
         assert not unknown, f"{page}: `{command}`: occflownet {words[1]} has no option {unknown}"
         return
-    source = REPO / words[1]
-    assert source.is_file(), f"{page}: `{command}` names {words[1]}, which does not exist"
-    text = source.read_text()
+    script = words[2] if words[1] == "-m" else words[1]
+    source = REPO / (script.replace(".", "/") + ".py" if words[1] == "-m" else script)
+    assert source.is_file(), f"{page}: `{command}` names {script}, which does not exist"
+    text = source.read_text() + (REPO / "benchmarks" / "harness.py").read_text()
     for option in (w.split("=")[0] for w in words if w.startswith("--")):
-        assert f'"{option}"' in text, f"{page}: {words[1]} has no option {option}"
+        assert f'"{option}"' in text, f"{page}: {script} has no option {option}"
 
 
 def _slug(heading: str) -> str:

@@ -140,7 +140,7 @@ def test_fp16_and_int8_variants(tmp_path):
     with pytest.raises(ValueError, match="int8_range"):
         write_int8(src, tmp_path / "m.bad.onnx", cfg, int8_range="4bit")
     # keep_float replaces the variant's float list: with only the resampling MatMuls kept, the decoder's convolutions
-    # are quantised too (benchmarks/int8_sensitivity.py measures such choices)
+    # are quantised too (benchmarks/studies/int8_sensitivity.py measures such choices)
     from occflownet.export.variants import activation_matmuls
 
     every = onnx.load(str(write_int8(src, tmp_path / "m.every.onnx", cfg,

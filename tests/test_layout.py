@@ -265,7 +265,7 @@ FEEDS_MODULE = "occflownet/runtime.py"
 # Files whose dicts keyed by input names or whose ``.run`` calls are not contract-v1 model feeds, and why.
 NOT_MODEL_FEEDS = {
     "occflownet/train/dataset.py": "the training batch (torch tensors for the loss), not an onnxruntime feed",
-    "benchmarks/bench_preprocess.py": "feeds the preprocessing sub-graph alone (images, intrinsics → x, k)",
+    "benchmarks/perf/bench_preprocess.py": "feeds the preprocessing sub-graph alone (images, intrinsics → x, k)",
 }
 NOT_SESSIONS = {"subprocess", "uvicorn", "asyncio"}               # ``X.run(...)`` that runs no model
 

@@ -10,7 +10,7 @@ once and answered 500 in the error shape; a calibration that breaks its parser a
 ``X-Content-Type-Options: nosniff``; ``/docs`` and ``/redoc`` are off unless asked for.
 
 No timed assertions: a wait that must end (an answer, an exit) has a bound far above what it takes; what it takes
-is measured by ``benchmarks/bench_serve_stall.py``.
+is measured by ``benchmarks/perf/bench_serve_stall.py``.
 """
 from __future__ import annotations
 

@@ -3,7 +3,7 @@ trained model: upload the real nuScenes frame (six JPEGs and calib.json), wait f
 drawn — the top-down canvas equals, pixel for pixel, the server's own ``image/png`` answer for the same request, the
 3D canvas shows the class colours of the grid — and that the latencies the page shows are the server's own. Five
 images show the API's own 422 message, and the server keeps serving. The page fetches nothing but this server.
-How long the page takes beside the API is measured by ``benchmarks/bench_serve_page.py``, not asserted here.
+How long the page takes beside the API is measured by ``benchmarks/perf/bench_serve_page.py``, not asserted here.
 
 Screenshots: ``<tmp>/screenshots/`` (and docs/ with OCCFLOWNET_UPDATE_DOCS=1)."""
 from __future__ import annotations

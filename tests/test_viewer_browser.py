@@ -4,7 +4,7 @@ its screenshot must not be blank and must show the colours of the classes the gr
 class, the voxels outside mask_camera, the layout) must change what is drawn. Files: a real Occ3D labels.npz, a
 briefly trained model's grid for the real nuScenes frame, the ground truth beside the prediction of a synthetic
 keyframe, and a 60,000-voxel grid for the size target (≤ 10 MB; how soon it draws is measured by
-benchmarks/bench_viewer.py, not asserted here: a timing depends on the machine's load).
+benchmarks/perf/bench_viewer.py, not asserted here: a timing depends on the machine's load).
 
 Screenshots stay under the test's temporary folder (``<tmp>/screenshots/``); with OCCFLOWNET_UPDATE_DOCS=1 they are
 also copied to docs/ (the pictures the README and docs/serve.md show)."""
@@ -120,8 +120,8 @@ def test_eval_html_shows_ground_truth_beside_prediction(driver, tmp_path):
 def test_a_60000_voxel_grid_opens_and_stays_small(driver, tmp_path):
     import sys
 
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    from bench_viewer import dense_grid
+    sys.path.insert(0, str(REPO))                    # the benchmarks package, when pytest runs from elsewhere
+    from benchmarks.perf.bench_viewer import dense_grid
 
     occ = dense_grid(60000)
     np.save(tmp_path / "dense.npy", occ)
@@ -132,5 +132,5 @@ def test_a_60000_voxel_grid_opens_and_stays_small(driver, tmp_path):
     print(f"\n60,000 voxels: {size / 2**20:.2f} MiB, drawn {seconds:.2f} s after get(), first frame "
           f"{state['firstFrameMs'] / 1e3:.2f} s after navigation start, {state['panes'][0]['faces']} faces")
     assert size <= 10 * 2**20
-    assert state["drawn"], state            # how soon: benchmarks/bench_viewer.py (first_frame_s), not a test
+    assert state["drawn"], state            # how soon: benchmarks/perf/bench_viewer.py (first_frame_s), not a test
     check_drawn(canvas_rgb(driver), top_classes(occ), CLASS_COLORS)
