@@ -189,7 +189,7 @@ def write_int8(src: Path, dst: Path, cfg: ModelConfig, calibration_samples: int 
     """The int8 QDQ variant of ``src`` (see the module docstring), calibrated on ``frame`` (a real frame folder)
     when given, else on synthetic samples; weights in ``int8_range`` (:data:`INT8_OP_TYPES` note). ``keep_float``
     (node names) and ``op_types`` replace :func:`float_in_int8` and :data:`INT8_OP_TYPES` (for measuring other
-    choices, ``benchmarks/int8_sensitivity.py``)."""
+    choices, ``benchmarks/studies/int8_sensitivity.py``)."""
     if int8_range not in INT8_RANGES:
         raise ValueError(f"int8_range must be one of {INT8_RANGES}, got {int8_range!r}")
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static

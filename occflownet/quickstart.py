@@ -56,7 +56,7 @@ class StageCosts:
     """What each stage of the quickstart costs per unit of work on the reference machine (float32 matmul rate
     ``matmul_gflops``; a training step costs its recipe's ``step_seconds``, measured on the same machine): the
     basis of the estimate printed at the start (:func:`estimate_minutes`). Measured on the 2-core development
-    machine (AMD EPYC, AVX-512 with bf16) by ``python benchmarks/perf/bench_quickstart.py``, which runs the
+    machine (AMD EPYC, AVX-512 with bf16) by ``python -m benchmarks.perf.bench_quickstart``, which runs the
     quickstart and divides each stage's seconds by its units (docs/results.md)."""
 
     matmul_gflops: float = REFERENCE_GFLOPS  # the reference machine's float32 matmul rate

@@ -3,7 +3,7 @@
     from occflownet.serve.client import wait_ready
     wait_ready("http://127.0.0.1:8000", timeout=60)        # → {"status": "ready", "warmup_seconds": ...}
 
-Used by the tests' server fixtures, ``benchmarks/bench_serve.py`` and ``docker/probe.py``.
+Used by the tests' server fixtures, ``benchmarks/perf/bench_serve.py`` and ``docker/probe.py``.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Statistics of Occ3D labels (any ``labels.npz``: ours, real Occ3D, the synthetic world's), and the agreement of
-labels with a geometric truth. ``benchmarks/labels_stats.py`` prints them side by side (docs/data.md)."""
+labels with a geometric truth. ``benchmarks/studies/labels_stats.py`` prints them side by side (docs/data.md)."""
 from __future__ import annotations
 
 import numpy as np

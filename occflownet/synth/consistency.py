@@ -1,7 +1,7 @@
 """Consistency checks of a synthetic world: do LiDAR labels, Occ3D voxels and camera depth agree?
 
 Images, LiDAR and the geometric truth come from one geometry, so they should. Two measurements, used by
-``tests/test_synth_consistency.py`` (thresholds) and ``benchmarks/synth_consistency.py`` (the figures in
+``tests/test_synth_consistency.py`` (thresholds) and ``benchmarks/studies/synth_consistency.py`` (the figures in
 docs/results.md):
 
 - ``lidar_label_agreement(root, version)``: read back from the files on disk, each keyframe LiDAR point moved LiDAR →
