@@ -1,7 +1,7 @@
 """The README and docs/ describe today's tools: every `occflownet ...` command line of a code block parses with
 today's command line, every `occflownet VERB --option` named in the prose is an option of that verb, every
 benchmark they run (`python -m benchmarks.perf.NAME`, `python -m benchmarks.studies.NAME`, `python benchmarks/X.py`)
-exists and has the options they give it (in its own file or the shared benchmarks/harness.py), every relative link
+exists and has the options they give it (in its own file or a benchmarks module it imports), every relative link
 (and its #anchor) resolves, and every recipe's docs page exists. Commands with placeholders in brackets (`[--seed S]`),
 alternatives (`a|b`), ellipses or a placeholder verb (`occflownet VERB --help`) are usage summaries, not command
 lines, and are skipped; one- or two-letter capitals (`--seed S`) are placeholders; a span like
@@ -77,9 +77,17 @@ def test_every_command_line_in_the_docs_parses(page, command, whole):
     script = words[2] if words[1] == "-m" else words[1]
     source = REPO / (script.replace(".", "/") + ".py" if words[1] == "-m" else script)
     assert source.is_file(), f"{page}: `{command}` names {script}, which does not exist"
-    text = source.read_text() + (REPO / "benchmarks" / "harness.py").read_text()
+    text = _benchmark_text(source)
     for option in (w.split("=")[0] for w in words if w.startswith("--")):
         assert f'"{option}"' in text, f"{page}: {script} has no option {option}"
+
+
+def _benchmark_text(source: Path) -> str:
+    """A benchmark's source and that of the benchmarks modules it imports (where shared options are defined)."""
+    text = source.read_text()
+    for module in re.findall(r"^from (benchmarks\.[\w.]+) import", text, flags=re.M):
+        text += (REPO / (module.replace(".", "/") + ".py")).read_text()
+    return text
 
 
 def _slug(heading: str) -> str:
