@@ -11,9 +11,9 @@ scored on a val world, one budget per run.
 The runs are recipes of ``occflownet/train/recipes.py``: ``--rows 1,5`` picks rows of the paper's ablation ladder
 (``recipes.ladder()``: 1 ``paper-3d`` … 7 ``paper-2d3d``; 8, 9 add free-space beams), ``--recipes`` names recipes
 (default: every ladder row). ``--rendering`` adds the recommended recipe's rendering (``recipes.RENDERING``) to every
-run that renders rays, recorded as variant ``rendering`` (the ladder with the recommended rendering: row 6 with it is
-``recommended``); ``--variant NAME --extra "OPTIONS"`` adds ``occflownet train`` options to every run, recorded under
-NAME (an experiment; without these a run is its recipe as registered, variant ``recipe``).
+run that renders rays and lacks it, recorded as variant ``rendering`` (the ladder with the recommended rendering: row
+6 with it is ``recommended``); ``--variant NAME --extra "OPTIONS"`` adds ``occflownet train`` options to every run,
+recorded under NAME (an experiment). A run that is its recipe as registered is recorded as variant ``recipe``.
 
 Every run trains ``tiny`` with the same seed and step budget on split ``all`` of the train root (``OUT/VARIANT/
 seed<S>/RECIPE``), evaluates the EMA checkpoint on split ``all`` of the val root (mIoU with the camera mask,
@@ -101,10 +101,13 @@ def selected_runs(ap: argparse.ArgumentParser, args, default_recipes: str | None
     unknown = [n for n in names if n not in RECIPES]
     if unknown:
         ap.error(f"unknown recipe {', '.join(unknown)}; choose among {', '.join(RECIPES)}")
-    variant = args.variant or (RENDERING_VARIANT if args.rendering else RECIPE_VARIANT)
     extra = shlex.split(args.extra)
-    return [Run(n, variant, ("--recipe", n, *(rendering_options(n) if args.rendering else []), *extra))
-            for n in names]
+    runs = []
+    for name in names:
+        added = rendering_options(name) if args.rendering else []
+        variant = args.variant or (RENDERING_VARIANT if added else RECIPE_VARIANT)
+        runs.append(Run(name, variant, ("--recipe", name, *added, *extra)))
+    return runs
 
 
 def run_folder(out: Path, run: Run, seed: int) -> Path:
