@@ -1,7 +1,9 @@
 """The generalization benchmark: train `tiny` on K synthetic scenes, score on the scenes of another world seed.
 
-    export OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1
-    nice -n 5 python benchmarks/generalization.py --out DIR [--variants quickstart,recommended] [--ks 4] \
+    git archive HEAD occflownet | tar -x -C SNAP     # optional: every run of the study imports the same code
+    export OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 PYTHONPATH=SNAP
+    python benchmarks/generalization.py --out DIR --check-resume 40      # resumed run == run in one go?
+    python benchmarks/generalization.py --out DIR [--variants quickstart,recommended] [--ks 4] \
         [--seeds 0,1,2] [--budgets 300,600,1200]
     python benchmarks/generalization.py --out DIR --table [--ks 4 --variants ...] [--equal-cpu quickstart@1200]
 
@@ -24,10 +26,12 @@ inside mask_camera, per class, static and dynamic, geometry IoU, RayIoU) and on 
 (train-set mIoU), and one JSON line goes to ``DIR/results.jsonl`` as it comes. Records already there are skipped
 (keyed by variant, K, seed, steps), so a stopped study resumes.
 
-Each training chunk runs in a worker process (``--worker``) with one torch thread and no data-loader workers; it
-measures its CPU seconds per step (process CPU time between the ends of its first and last optimisation steps,
-divided by the steps between: data loading, step, EMA, logs and checkpoints; not the set-up), so that variants can
-be compared at equal CPU time as well as at equal steps (``--table``, ``--equal-cpu``).
+Each training chunk runs in a worker process (``--worker``, under ``nice -n 5``) with one torch thread and no
+data-loader workers, one at a time; it measures its CPU seconds per step (process CPU time between the ends of its
+first and last optimisation steps, divided by the steps between: data loading, step, EMA, logs and checkpoints; not
+the set-up), so that variants can be compared at equal CPU time as well as at equal steps (``--table``,
+``--equal-cpu``). On a loaded machine the CPU time of the same step varies by about ±10 % (cache and core
+sharing), so equal-CPU comparisons need differences larger than that.
 """
 from __future__ import annotations
 
