@@ -1,16 +1,16 @@
 """The seconds of one ``tiny`` training step per recipe, on this machine and scaled to the reference machine: the
 figures ``Recipe.step_seconds`` of ``occflownet/train/recipes.py`` holds (and ``occflownet recipes`` lists).
 
-    python -m benchmarks.perf.recipe_steps [--recipes recommended,quickstart,...] [--steps 20] [--skip 5]
+    python -m benchmarks.perf.recipe_steps [--recipes recommended,quickstart,...] [--steps 24] [--skip 8]
         [--rounds 1] [--world W] [--jsonl PATH]
 
 The world is the quickstart's (``occflownet synth --scenes 6 --frames 8 --seed 0``, then ``occflownet prepare``;
 made in ``--world`` when it holds none, by default in a temporary folder). Each recipe (default: all of them) runs
 the real ``occflownet train --recipe NAME --preset tiny`` on the world's split ``train`` (the quickstart's) for
-``--steps`` steps: float32 (``--precision fp32``), 2 torch and numba threads (``OMP_NUM_THREADS``,
-``NUMBA_NUM_THREADS``), the data workers ``occflownet train`` defaults to, a log record every step. A step's seconds
-are the median of the intervals between consecutive log records after the first ``--skip`` steps (which compile
-numba kernels, fill caches and start the workers); with ``--rounds`` > 1 the recipes run in turn round after
+``--steps`` steps on the CPU (``--device cpu``): float32 (``--precision fp32``), 2 torch and numba threads
+(``OMP_NUM_THREADS``, ``NUMBA_NUM_THREADS``), the data workers ``occflownet train`` defaults to, a log record every
+step. A step's seconds are the median of the intervals between consecutive log records after the first ``--skip``
+steps (which compile numba kernels, start the workers and fill their caches: several times slower); with ``--rounds`` > 1 the recipes run in turn round after
 round, the order reversed every other round (``benchmarks.harness.interleaved``), and the median over the rounds
 is taken.
 
@@ -60,7 +60,7 @@ def run_recipe(name: str, world: Path, args, workdir: Path) -> float:
     out = Path(tempfile.mkdtemp(dir=workdir, prefix=f"{name}-"))
     cmd = [sys.executable, "-m", "occflownet", "train", "--recipe", name, "--preset", "tiny", "--dataroot",
            str(world), "--split", "train", "--out", str(out), "--max-steps", str(args.steps), "--log-every", "1",
-           "--checkpoint-every", str(10 * args.steps), "--precision", "fp32", "--quiet"]
+           "--checkpoint-every", str(10 * args.steps), "--device", "cpu", "--precision", "fp32", "--quiet"]
     proc = subprocess.run(cmd, env=tree_env(OMP_NUM_THREADS=str(THREADS), NUMBA_NUM_THREADS=str(THREADS)),
                           capture_output=True, text=True)
     if proc.returncode:
@@ -90,8 +90,8 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--recipes", default=",".join(RECIPE_NAMES), help="recipe names (default: every recipe)")
-    p.add_argument("--steps", type=int, default=20)
-    p.add_argument("--skip", type=int, default=5, help="first steps left out (compilation, caches, workers)")
+    p.add_argument("--steps", type=int, default=24)
+    p.add_argument("--skip", type=int, default=8, help="first steps left out (compilation, workers, caches)")
     p.add_argument("--rounds", type=int, default=1)
     p.add_argument("--world", default=None, help="the quickstart's world, prepared (made there when missing; "
                                                  "default: a temporary folder)")
