@@ -230,8 +230,12 @@ def post_frame(server: str, accept: str = "application/json", cameras=CAMERAS):
 def send_from_page(page, cameras=CAMERAS, calibration: bool = True) -> dict:
     """In the server page (a selenium driver on ``/ui``): choose the real frame's images (and calib.json), press
     the button, wait for the outcome → the page's ``occPage.last`` (ok, status, timings, ...)."""
-    from browser import wait_for
     from selenium.webdriver.common.by import By
+
+    try:
+        from browser import wait_for               # the tests: tests/ is on the path
+    except ModuleNotFoundError:
+        from tests.browser import wait_for         # the benchmarks: imported as tests.serve_fixtures
 
     page.execute_script("window.occPage.last = null; document.getElementById('images').value = '';")
     page.find_element(By.ID, "images").send_keys("\n".join(str(FRAME_DIR / f"{c}.jpg") for c in cameras))
