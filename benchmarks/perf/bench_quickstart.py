@@ -6,8 +6,9 @@ finished one) and prints each stage's seconds per unit of work beside this machi
 
 ``--reuse``: do not run; read ``OUT/timings.json`` and ``OUT/run/log.jsonl`` of a quickstart that ran on this
 machine. Steps are counted from the run's log (the time limit may stop training before ``--max-steps``). Prints
-one JSON object: the float32 matmul rate (1024³, torch's threads, measured over 2 s after the run), the stage
-costs and the validation scores in % (mIoU, geometry IoU, car IoU, RayIoU inside mask_camera), followed by the
+one JSON object: the recipe, the float32 matmul rate (1024³, torch's threads, measured over 2 s after the run),
+the stage costs (``StageCosts``' fields, and ``train_per_step``: the recipe's ``step_seconds`` here) and the
+validation scores in % (mIoU, geometry IoU, car IoU, RayIoU inside mask_camera), followed by the
 load average; the same record is appended to ``--jsonl``.
 """
 from __future__ import annotations
@@ -23,7 +24,9 @@ from occflownet.quickstart import QuickstartConfig
 
 
 def stage_costs(out: Path) -> dict:
-    """{field of StageCosts: value} from a finished quickstart folder (timings.json, run/log.jsonl)."""
+    """{field of StageCosts: value} from a finished quickstart folder (timings.json, run/log.jsonl), with the
+    seconds of a training step of its recipe ("train_per_step": the recipe's ``step_seconds`` on this machine) and
+    the steps trained."""
     timings = json.loads((out / "timings.json").read_text())
     seconds, cfg = timings["seconds"], timings["config"]
     log = [json.loads(line) for line in (out / "run" / "log.jsonl").read_text().splitlines()]
@@ -32,7 +35,7 @@ def stage_costs(out: Path) -> dict:
     per_step = (last["time"] - first["time"]) / max(1, last["step"] - first["step"])
     return {"synth_per_keyframe": seconds["synth"] / keyframes, "prepare_per_keyframe": seconds["prepare"] / keyframes,
             "train_setup": max(0.0, seconds["train"] - per_step * last["step"]),
-            ("train_per_rendering_step" if QuickstartConfig(**cfg).renders_rays else "train_per_step"): per_step,
+            "train_per_step": per_step,
             "eval_per_keyframe": seconds["eval"] / cfg["frames"], "export": seconds["export"], "steps": last["step"]}
 
 
@@ -57,7 +60,8 @@ def main(argv=None) -> int:
     results = Results("bench_quickstart", args.jsonl, matmul_seconds=2.0)
     state = results.state()
     costs = {"matmul_gflops": state["matmul_gflops"], **stage_costs(out)}
-    record = {k: round(v, 3) for k, v in costs.items()} | {"scores": val_scores(out)}
+    recipe = QuickstartConfig(**json.loads((out / "timings.json").read_text())["config"]).recipe
+    record = {"recipe": recipe} | {k: round(v, 3) for k, v in costs.items()} | {"scores": val_scores(out)}
     results.add(record, json.dumps(record, indent=1), state)
     return 0
 
