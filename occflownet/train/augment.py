@@ -2,6 +2,8 @@
 
 - :class:`BevFlip`, the official recipe's ``bda_aug_conf`` (flip_dx_ratio = flip_dy_ratio = 0.5, no rotation or
   scaling): the ego frame is mirrored in x and/or y, and every geometric field of the item with it;
+- :class:`BevRotation` (beyond the paper): the ego frame turned about z by a multiple of 90°, the same way (with the
+  flips, any of the eight symmetries of the square grid; both move voxels onto voxels, so nothing is resampled);
 - :class:`ImageAug`, the official recipe's image augmentation (``data_config``: resize jitter, horizontal crop
   position, horizontal flip, rotation, drawn per camera): each image is warped by an affine map of its pixel
   coordinates and its intrinsics follow, so the scene's geometry is unchanged.
@@ -73,36 +75,85 @@ class BevFlip:
     def apply(self, item: dict, grid: Grid = GRID) -> dict:
         """A copy of the training ``item`` (a dict of tensors, see the module docstring) with its geometry mirrored;
         the item itself when nothing is flipped."""
-        if not (self.x or self.y):
-            return item
-        if not np.allclose(np.asarray(grid.lower[:2]), -np.asarray(grid.upper[:2])):
-            raise ValueError(f"BEV flips need a grid symmetric about x = y = 0, got {grid.lower} .. {grid.upper}")
-        signs = torch.from_numpy(self.signs)
-        mirror = torch.diag(torch.cat([signs, torch.ones(1)]))                       # F = F⁻¹, [4, 4]
-        out = dict(item)
-        out["cam2ego"] = mirror @ item["cam2ego"]
-        for key in VECTOR_FIELDS:
-            if key in item:
-                out[key] = item[key] * signs.to(item[key].dtype)
-        axes = [a for a, flipped in ((0, self.x), (1, self.y)) if flipped]
-        for key in GRID_FIELDS:
-            if key in item:
-                out[key] = torch.flip(item[key], axes)
-        for key in STACKED_GRID_FIELDS:
-            if key in item:
-                out[key] = torch.flip(item[key], [a + 1 for a in axes])
-        if "flow" in item:
-            out["flow"] = self._flow(item["flow"], grid)
-        return out
+        return apply_xy_map(item, np.diag(self.signs[:2]).astype(np.int64), grid)
 
-    def _flow(self, moves: dict, grid: Grid) -> dict:
-        """Box moves (``occflownet.data.flow.flow_moves``' arrays) in the mirrored frame."""
+
+@dataclass(frozen=True)
+class BevRotation:
+    """Turn the ego frame about its z axis by ``quarter_turns`` × 90° (counter-clockwise seen from above: the point
+    (x, y) moves to (-y, x) for one turn), every geometric field of the item with it, as :class:`BevFlip` mirrors
+    them. A quarter turn maps the grid's voxels onto voxels (a square grid centred on the ego), so labels and box
+    moves are moved exactly, with no resampling."""
+
+    quarter_turns: int = 0
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator) -> "BevRotation":
+        """0, 1, 2 or 3 quarter turns, uniform, from one draw of ``rng``."""
+        return cls(int(rng.integers(4)))
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """int64 [2, 2]: the map of (x, y)."""
+        c, s = ((1, 0), (0, 1), (-1, 0), (0, -1))[self.quarter_turns % 4]
+        return np.array([[c, -s], [s, c]], np.int64)
+
+    def apply(self, item: dict, grid: Grid = GRID) -> dict:
+        """A copy of the training ``item`` with its geometry turned; the item itself for no turn."""
+        return apply_xy_map(item, self.matrix, grid)
+
+
+def apply_xy_map(item: dict, matrix: np.ndarray, grid: Grid = GRID) -> dict:
+    """A copy of the training ``item`` in the ego frame whose (x, y) are ``matrix`` int [2, 2] (a signed permutation:
+    a flip, a quarter turn or both) times the old ones, z unchanged; the item itself for the identity. The frame's
+    map T = [[matrix, 0], [0, 1]] (4 × 4) acts as the module docstring says for a flip: ``cam2ego`` → T·cam2ego, the
+    vectors → T·v, the grids [X, Y, Z] (and [T, X, Y, Z]) moved voxel by voxel, box moves' voxels moved and their
+    transforms T·M·T⁻¹. Needs a grid symmetric about x = 0 and y = 0, and square when x and y swap."""
+    matrix = np.asarray(matrix, np.int64)
+    if np.array_equal(matrix, np.eye(2, dtype=np.int64)):
+        return item
+    if not np.allclose(np.asarray(grid.lower[:2]), -np.asarray(grid.upper[:2])) or \
+            (matrix[0, 0] == 0 and grid.shape[0] != grid.shape[1]):
+        raise ValueError(f"BEV flips and turns need a grid symmetric about x = y = 0 (and square for a turn), got "
+                         f"{grid.lower} .. {grid.upper}")
+    t = np.eye(4)
+    t[:2, :2] = matrix
+    out = dict(item)
+    out["cam2ego"] = torch.from_numpy(t).to(item["cam2ego"].dtype) @ item["cam2ego"]
+    linear = torch.from_numpy(t[:3, :3].T)
+    for key in VECTOR_FIELDS:
+        if key in item:
+            out[key] = item[key] @ linear.to(item[key].dtype)
+    source_i, source_j = _source_voxels(matrix, grid.shape[:2])
+    for key in GRID_FIELDS:
+        if key in item:
+            out[key] = item[key][source_i, source_j]
+    for key in STACKED_GRID_FIELDS:
+        if key in item:
+            out[key] = item[key][:, source_i, source_j]
+    if "flow" in item:
+        moves = item["flow"]
         voxels = np.array(moves["voxels"], copy=True)
-        for axis, flipped in ((0, self.x), (1, self.y)):
-            if flipped:
-                voxels[:, axis] = grid.shape[axis] - 1 - voxels[:, axis]
-        mirror = np.diag(np.append(self.signs, 1.0)).astype(np.asarray(moves["transforms"]).dtype)
-        return dict(moves, voxels=voxels, transforms=mirror @ np.asarray(moves["transforms"]) @ mirror)
+        voxels[..., :2] = _moved_voxels(matrix, voxels[..., :2], grid.shape[:2])
+        transforms = np.asarray(moves["transforms"])
+        out["flow"] = dict(moves, voxels=voxels, transforms=(t @ transforms @ t.T).astype(transforms.dtype))
+    return out
+
+
+def _moved_voxels(matrix: np.ndarray, ij: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Voxel indices ij int [..., 2] → their indices after ``matrix`` acts on the voxel centres (a grid centred on 0:
+    centre offset i - (n - 1) / 2, in half-voxels to stay integer)."""
+    n = np.asarray(shape, np.int64)
+    doubled = 2 * ij - (n - 1)                                   # 2 · (i - (n - 1) / 2)
+    return ((doubled @ matrix.T) + (n - 1)) // 2
+
+
+def _source_voxels(matrix: np.ndarray, shape: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Index tensors long [X, Y] (i, j): the old voxel each new voxel (i', j') takes its value from (matrix⁻¹ =
+    matrixᵀ for a signed permutation)."""
+    i, j = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    source = _moved_voxels(matrix.T, np.stack([i, j], axis=-1), shape)
+    return torch.from_numpy(source[..., 0]), torch.from_numpy(source[..., 1])
 
 
 @dataclass(frozen=True)

@@ -133,6 +133,9 @@ class TrainConfig:
     bev_flip: bool = option(False, "mirror each training sample's ego frame in x and in y, each with probability "
                                    "0.5 (the official recipe's BEV augmentation; occflownet/train/augment.py)",
                             group=EXPERIMENTAL)
+    bev_rotate: bool = option(False, "turn each training sample's ego frame about z by 0, 90, 180 or 270 degrees "
+                                     "(uniform), its cameras, rays, labels and box moves with it (beyond the paper; "
+                                     "occflownet/train/augment.py)", group=EXPERIMENTAL)
     image_aug: bool = option(False, "warp each training image by a random resize, sideways shift, horizontal flip and "
                                     "rotation, its intrinsics with it (the official recipe's image augmentation; "
                                     "occflownet/train/augment.py)", group=EXPERIMENTAL)
