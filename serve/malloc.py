@@ -2,7 +2,7 @@
 
 Each request decodes six ~4 MB images on worker threads; glibc gives every thread its own malloc arena (up to
 8 × cores) and keeps freed memory of each arena mapped, so the resident size of a busy server climbs by hundreds of
-MiB before it levels off. Two arenas keep it flat at no measurable cost in throughput (docs/serve.md has the
+MiB before it levels off. Two arenas keep it flat at no measurable cost in throughput (docs/results.md#serving has the
 figures). ``MALLOC_ARENA_MAX`` in the environment, when set, wins: glibc read it at start-up and it is left alone.
 """
 from __future__ import annotations

@@ -93,7 +93,7 @@ def data_url_rgb(url: str) -> np.ndarray:
 
 def keep_screenshot(tmp_path: Path, name: str, png: bytes, docs: bool = True) -> Path:
     """Save a screenshot as ``<tmp_path>/screenshots/<name>`` (the test's artifacts) and, if ``docs`` and
-    OCCFLOWNET_UPDATE_DOCS=1, as ``docs/<name>`` (the pictures the README and docs/serve.md show)."""
+    OCCFLOWNET_UPDATE_DOCS=1, as ``docs/<name>`` (the pictures the README and docs/viewer.md show)."""
     path = tmp_path / "screenshots" / name
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(png)

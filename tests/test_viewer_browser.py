@@ -7,7 +7,7 @@ keyframe, and a 60,000-voxel grid for the size target (≤ 10 MB; how soon it dr
 benchmarks/perf/bench_viewer.py, not asserted here: a timing depends on the machine's load).
 
 Screenshots stay under the test's temporary folder (``<tmp>/screenshots/``); with OCCFLOWNET_UPDATE_DOCS=1 they are
-also copied to docs/ (the pictures the README and docs/serve.md show)."""
+also copied to docs/ (the pictures the README and docs/viewer.md show)."""
 from __future__ import annotations
 
 import time

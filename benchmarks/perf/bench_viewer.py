@@ -1,4 +1,4 @@
-"""The 3D viewer's figures (docs/serve.md): size, time to the first frame and frame rate while orbiting
+"""The 3D viewer's figures (docs/results.md#viewing): size, time to the first frame and frame rate while orbiting
 of a viewer file in headless Chromium (SwiftShader WebGL, the browser tests' flags), for a grid of 60,000 occupied
 voxels, and the same for the plotly alternatives the choice was made against (when plotly is installed:
 ``pip install plotly``; it is no dependency of the project).
