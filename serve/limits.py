@@ -222,8 +222,8 @@ class InferenceGate:
 
     A slot covers all of a request's CPU-heavy work (decoding its six images, the inference on a dedicated thread,
     encoding the answer): with ``max_inflight`` = cores // intra-op threads, one request per core group computes
-    at a time, so decode threads never compete with onnxruntime's threads (oversubscription cost 35 % throughput
-    in docs/serve.md's measurements). ``clock`` (seconds) times the slots for the Retry-After estimate. Use from
+    at a time, so decode threads never compete with onnxruntime's threads. ``clock`` (seconds) times the slots for
+    the Retry-After estimate. Use from
     the event loop only::
 
         gate.check()                      # raises Saturated when the gate is full now (admits nothing)
