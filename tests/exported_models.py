@@ -67,9 +67,9 @@ def trained_tiny_checkpoint() -> Path:
     run = workdir() / "trained-run"
     if os.environ.get("OCCFLOWNET_TEST_KEEP") and (run / "checkpoints" / "last.pt").is_file():
         return run / "checkpoints" / "last.pt"
-    assert main(["train", "--preset", "tiny", "--dataroot", str(root), "--out", str(run), "--split", "all",
-                 "--supervision", "3d", "--voxel-mask", "--max-steps", "80", "--num-workers", "0", "--quiet",
-                 "--seed", "0", "--precision", "fp32"]) == 0
+    assert main(["train", "--recipe", "quickstart-3d", "--preset", "tiny", "--dataroot", str(root), "--out", str(run),
+                 "--split", "all", "--max-steps", "80", "--num-workers", "0", "--quiet", "--seed", "0",
+                 "--precision", "fp32"]) == 0
     return run / "checkpoints" / "last.pt"
 
 

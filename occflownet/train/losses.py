@@ -97,7 +97,8 @@ def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
     (:func:`step_data`)."""
     weights = ("class_weights",) if cfg.loss_weighting else ()
     rays = ("rendered", "ray_depths", "ray_labels", *weights)
-    two_d, three_d = (part in supervision_parts(cfg.supervision) for part in ("2d", "3d"))
+    parts = supervision_parts(cfg.supervision)
+    two_d, three_d = "2d" in parts, "3d" in parts
     terms = []
     if two_d:
         terms += [LossTerm("render_depth", cfg.render_depth_weight if cfg.depth_loss else 0.0, rays,
