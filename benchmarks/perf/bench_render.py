@@ -31,7 +31,8 @@ import torch.nn.functional as F
 
 from benchmarks.harness import SHARED_DATA, Results, add_jsonl_option
 from occflownet.occ3d import GRID, NUM_CLASSES
-from occflownet.render.sampling import importance_sample, intervals_from_samples, uniform_jittered_edges
+from occflownet.render.sampling import (cdf_from_sigma, importance_sample, intervals_from_samples,
+                                        uniform_jittered_edges)
 from occflownet.render.volume_render import RenderConfig, render_rays, weights_from_density
 
 SHARED = SHARED_DATA
@@ -100,8 +101,7 @@ def naive_render(density, logits, origins, directions, cfg: RenderConfig, genera
     n = origins.shape[0]
     edges = uniform_jittered_edges(n, cfg.n_coarse, cfg.near, cfg.far, generator=generator).to(origins.dtype)
     coarse = lookup(0.5 * (edges[:, 1:] + edges[:, :-1]))[..., 0]
-    tau = coarse.detach() * (edges[:, 1:] - edges[:, :-1])
-    cdf = torch.cat([tau.new_zeros(n, 1), 1 - torch.exp(-torch.cumsum(tau, -1))], -1)
+    cdf = cdf_from_sigma(edges, coarse.detach(), cfg)       # the official distribution, as the renderer draws it
     t = importance_sample(edges, cdf, cfg.n_fine)
     starts, ends = intervals_from_samples(t, cfg.near, cfg.far)
     values = lookup(t)
