@@ -10,7 +10,7 @@ convolution and Gemm. Each graph is calibrated as the variant is (the frame's va
 fp32 graph on the frame as the inference paths decode it: occupancy voxels equal, occupied voxels whose class
 changed (of the fp32 occupied ones), density max |Δ|. The equal fraction counts every voxel, free ones included;
 the occupied-voxel figure is the stricter one. One JSON line per graph is appended to ``OUT/sensitivity.jsonl`` as
-it comes. Speed is not measured here: ``benchmarks/bench_inference.py --profile`` gives each node's kernel time.
+it comes. Speed is not measured here: ``python -m benchmarks.perf.bench_inference --profile`` gives each node's kernel time.
 """
 from __future__ import annotations
 

@@ -2,10 +2,10 @@
 
     git archive HEAD occflownet | tar -x -C SNAP     # optional: every run of the study imports the same code
     export OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 PYTHONPATH=SNAP
-    python benchmarks/generalization.py --out DIR --check-resume 40      # resumed run == run in one go?
-    python benchmarks/generalization.py --out DIR [--variants quickstart,recommended] [--ks 4] \
+    python -m benchmarks.studies.generalization --out DIR --check-resume 40      # resumed run == run in one go?
+    python -m benchmarks.studies.generalization --out DIR [--variants quickstart,recommended] [--ks 4] \
         [--seeds 0,1,2] [--budgets 300,600,1200]
-    python benchmarks/generalization.py --out DIR --table [--ks 4 --variants ...] [--equal-cpu quickstart@1200]
+    python -m benchmarks.studies.generalization --out DIR --table [--ks 4 --variants ...] [--equal-cpu quickstart@1200]
 
 The worlds (made once under ``DIR/worlds``, unless they exist): ``train<N>``, N scenes × F keyframes of world seed
 ``--train-seed`` (N = the largest K); ``k<K>``, a root that links to ``train<N>``'s files with a ``splits.json``
@@ -65,23 +65,11 @@ LEVERS: dict[str, dict] = {
 
 
 def base_recipes() -> dict[str, dict]:
-    """{name: TrainConfig overrides} of the two baselines; the one place that reads the project's recipes: the named
-    recipes of ``occflownet/train/recipes.py`` where the code has them, else the quickstart's ``QUICK_RENDERING``
-    and the recipe module's ``RENDERING_RECIPE`` (the same settings, from before the registry).
+    """{name: TrainConfig overrides} of the two baselines, read from the recipe registry
+    (``occflownet/train/recipes.py``): ``quickstart``, the run ``occflownet quickstart`` trains, and ``recommended``,
+    the default of ``occflownet train``."""
+    from occflownet.train.recipes import recipe
 
-    ``quickstart``: the run ``occflownet quickstart`` trains (3D losses inside mask_camera and the rays of the
-    current frame, O = 0, rendered with the recommended options); ``recommended``: the recommended 2D recipe of
-    docs/training.md (the recommended rendering with O = 3, occupancy flow, the dynamic filter, disocclusion and
-    loss weighting)."""
-    try:
-        from occflownet.train.recipes import recipe
-    except ImportError:
-        from occflownet.quickstart import QUICK_RENDERING
-        from occflownet.train.recipe import RENDERING_RECIPE
-
-        return {"quickstart": {"supervision": "2d+3d", "voxel_mask": True, **QUICK_RENDERING},
-                "recommended": {"supervision": "2d", "horizon": 3, "flow": True, "dynamic_filter": True,
-                                "disocclusion": True, "loss_weighting": True, **RENDERING_RECIPE}}
     return {name: {**recipe(name).settings, "recipe": name} for name in ("quickstart", "recommended")}
 
 

@@ -1,6 +1,6 @@
 """Inference latency per preset, six camera images of the real nuScenes frame → grid, with a regression guard.
 
-    python benchmarks/bench_inference.py [--presets tiny base] [--runs 20] [--occupied 0.25] [--checkpoint CKPT]
+    python -m benchmarks.perf.bench_inference [--presets tiny base] [--runs 20] [--occupied 0.25] [--checkpoint CKPT]
         [--baseline FILE | --baseline-commit REV] [--profile] [--variants [int8 fp16]] [--openvino] [--torch]
         [--threads N]
 
@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 FRAME = ROOT.parent / "shared" / "data" / "nuscenes-frame"
 SPINNING = False  # onnxruntime worker threads busy-wait (--ort-spinning) or sleep (default, as in predict/serve)
