@@ -11,7 +11,7 @@ import torch
 
 from occflownet.occ3d import NUM_CLASSES
 from occflownet.train.losses import (LossTerm, free_prior_loss, free_space_loss, lidar_depth_loss, lidar_depth_targets,
-                                     loss_terms, normalized_semantics_loss, point_density_loss, render_depth_loss,
+                                     loss_terms, point_density_loss, step_data, render_depth_loss,
                                      render_semantics_loss, voxel_density_loss, voxel_semantics_loss, voxel_targets)
 from occflownet.train.recipe import TrainConfig
 
@@ -63,7 +63,7 @@ def test_render_losses_reject_bad_labels_and_handle_no_rays():
     empty = SimpleNamespace(depth=torch.zeros(0), semantics=torch.zeros(0, NUM_CLASSES), weight_sum=torch.zeros(0))
     none = torch.zeros(0, dtype=torch.long)
     assert render_depth_loss(empty, torch.zeros(0), none).item() == 0
-    assert render_semantics_loss(empty, none).item() == 0 and normalized_semantics_loss(empty, none).item() == 0
+    assert render_semantics_loss(empty, none).item() == 0
 
 
 # A front camera at ego (1, 0, 1.5) looking along +x (OpenCV: x right, y down, z forward), and a rear one.
@@ -133,8 +133,6 @@ def test_voxel_losses_by_hand_with_mask():
         voxel_semantics_loss(logits[:, :3], every["occupied_labels"])
     # the terms read σ and the logits at the supervised voxels, and their targets
     assert _term(TrainConfig(supervision="3d"), "voxel_density").needs == ("voxel_sigma", "voxel_occupied")
-    assert _term(TrainConfig(supervision="3d", voxel_weighting="sqrt-balanced"), "voxel_density").needs == \
-        ("voxel_sigma", "voxel_occupied", "voxel_labels", "voxel_weights")
     assert _term(TrainConfig(supervision="3d", voxel_mask=True), "voxel_semantics").needs == \
         ("occupied_logits", "occupied_labels")
 
@@ -178,24 +176,6 @@ def test_free_space_loss_is_zero_for_transparent_beams_and_grows_with_opacity():
     assert torch.all(opacity.grad > 0)
 
 
-def test_normalized_render_semantics_ignores_how_much_light_stops():
-    # the raw mixture Σ w_i s_i of a half-transparent ray has logits scaled by 0.5: its CE is higher than the one
-    # of the same logits at full opacity; normalized, both are the CE of the logits themselves
-    logits = torch.zeros(1, NUM_CLASSES)
-    logits[0, 3] = 4.0
-    labels = torch.tensor([3])
-    ce = float(torch.nn.functional.cross_entropy(logits, labels))
-    raw_term = _term(TrainConfig(), "render_semantics")
-    norm_term = _term(TrainConfig(render_semantics="normalized"), "render_semantics")
-    for opacity in (0.5, 1.0):
-        rendered = SimpleNamespace(depth=torch.tensor([2.0]), semantics=opacity * logits,
-                                   weight_sum=torch.tensor([opacity]))
-        inputs = {"rendered": rendered, "ray_labels": labels, "class_weights": None}
-        raw, norm = float(raw_term(inputs)), float(norm_term(inputs))
-        assert norm == pytest.approx(ce, rel=1e-5)
-        assert (raw > ce + 0.1) == (opacity < 1.0)
-
-
 def test_free_prior_charges_every_voxel_by_its_opacity():
     density = torch.zeros(1, 2, 2, 2)
     assert float(free_prior_loss(density)) == 0.0
@@ -208,38 +188,6 @@ def test_free_prior_charges_every_voxel_by_its_opacity():
     value.backward()
     assert float(prior.grad[0, 0, 0, 0]) > float(prior.grad[0, 1, 1, 1]) > 0
     assert "free_prior" not in [t.name for t in loss_terms(TrainConfig(supervision="3d"))]
-
-
-def test_voxel_weighting_weighs_each_voxel_by_its_label():
-    """--voxel-weighting: BCE × w(label) before the mean, by hand: σ 0.8 at a car voxel (w 5), 0.3 at a free one (w 1)
-    → (−5·log 0.8 − log 0.7) / 2; the loss computer reads the labels from "occ_semantics" at the rows the targets
-    keep, masked like the targets."""
-    from occflownet.model.presets import get_preset
-    from occflownet.train.step import LossComputer
-
-    density = torch.tensor([0.8, 0.3])
-    gt = torch.tensor([4, 17], dtype=torch.uint8).view(2, 1, 1)
-    weights = torch.ones(NUM_CLASSES + 1)
-    weights[4] = 5.0
-    every = voxel_targets(gt)
-    assert voxel_density_loss(density, every["voxel_occupied"], torch.tensor([4, 17]), weights).item() == \
-        pytest.approx(-(5 * math.log(0.8) + math.log(0.7)) / 2, rel=1e-6)
-    with pytest.raises(ValueError, match="weighting needs"):
-        voxel_density_loss(density, every["voxel_occupied"], None, weights)
-    with pytest.raises(ValueError, match="needs the voxel_weights"):   # the option without its weights
-        _computer(supervision="3d", voxel_weighting="sqrt-balanced")
-    outputs = {"density": density.view(1, 2, 1, 1), "logits": torch.zeros(1, 2, 1, 1, NUM_CLASSES)}
-    cpu = torch.device("cpu")
-    losses = LossComputer(TrainConfig(supervision="3d", voxel_weighting="sqrt-balanced", depth_loss=False),
-                          get_preset("tiny"), None, voxel_weights=weights)
-    batch = {**every, "occ_semantics": gt[None]}
-    assert losses.inputs(outputs, batch, cpu)["voxel_labels"].tolist() == [4, 17]
-    assert float(losses(outputs, batch, cpu)["voxel_density"]) == \
-        pytest.approx(-(5 * math.log(0.8) + math.log(0.7)) / 2, rel=1e-6)
-    masked = {**voxel_targets(gt, torch.tensor([False, True]).view(2, 1, 1)), "occ_semantics": gt[None]}
-    masked_losses = LossComputer(TrainConfig(supervision="3d", voxel_weighting="sqrt-balanced", depth_loss=False,
-                                             voxel_mask=True), get_preset("tiny"), None, voxel_weights=weights)
-    assert masked_losses.inputs(outputs, masked, cpu)["voxel_labels"].tolist() == [17]
 
 
 def test_free_terms_ramp_in_linearly_over_free_ramp_steps():
@@ -408,8 +356,9 @@ def test_point_semantics_reads_the_voxel_that_holds_each_point():
                    torch.Generator().manual_seed(0))
     expected = 0.5 * (-math.log(math.exp(5) / (math.exp(5) + 16)) - math.log(1 / (math.exp(5) + 16))) / 2
     assert float(terms["point_semantics"]) == pytest.approx(expected, rel=1e-5)
-    with pytest.raises(ValueError, match="point_semantics_weight"):
-        TrainConfig(point_semantics_weight=0.5, supervision="3d")
+    # with 3D labels the point term still loads the rays it reads (the table of the data each input needs)
+    assert "rays" in step_data(loss_terms(TrainConfig(point_semantics_weight=0.5, supervision="3d")))
+    assert "rays" not in step_data(loss_terms(TrainConfig(supervision="3d")))
 
 
 def test_point_density_asks_the_voxel_of_each_point_to_be_occupied():
@@ -431,55 +380,10 @@ def test_point_density_asks_the_voxel_of_each_point_to_be_occupied():
     assert float(point_density_loss(torch.ones(3))) == 0.0
 
 
-def _sigmoid_slope(logits: list[float]) -> list[float]:
-    """σ'(x) = σ(x)(1 - σ(x)) at each of ``logits``."""
-    s = torch.sigmoid(torch.tensor(logits))                       # float32, as the gradients it is held against
-    return (s * (1 - s)).tolist()
-
-
-def test_density_grad_floor_renders_the_sigmoid_and_keeps_a_gradient():
-    """--density-grad-floor M: σ = sigmoid(logit) exactly, and the logit's gradient is at least sigmoid'(M)."""
-    from occflownet.train.step import SigmoidGradientFloor
-
-    z = torch.tensor([-20.0, 0.5, 9.0], requires_grad=True)
-    sigma = SigmoidGradientFloor.apply(z, 6.0)
-    assert torch.equal(sigma.detach(), torch.sigmoid(z.detach()))
-    sigma.sum().backward()
-    assert z.grad.tolist() == pytest.approx(_sigmoid_slope([-6.0, 0.5, 6.0]))
-    losses = _computer(density_grad_floor=6.0)
-    logit = torch.tensor([-20.0, 0.0]).view(1, 2, 1, 1)
-    outputs = {"density": torch.sigmoid(logit), "density_logit": logit}
-    assert torch.equal(losses.render_density(outputs["density"], outputs), outputs["density"])
-    both = _computer(density_grad_floor=4.0, density_logit_clip=6.0)     # clamped at 6, gradient floor at 4
-    logit = torch.tensor([-20.0, -5.0]).view(1, 2, 1, 1).requires_grad_()
-    both.render_density(None, {"density_logit": logit}).sum().backward()
-    assert logit.grad.flatten().tolist() == pytest.approx(_sigmoid_slope([-4.0, -4.0]))
-
-
-def test_density_logit_clip_renders_at_the_edge_and_keeps_the_gradient():
-    """--density-logit-clip M: a voxel whose logit ran to -20 renders as σ = sigmoid(-M) and its logit still gets
-    the gradient sigmoid'(-M) (straight through the clamp), where sigmoid'(-20) ≈ 2e-9 would leave it stuck."""
-    from occflownet.train.step import straight_clamp
-
-    z = torch.tensor([-20.0, 0.5, 9.0], requires_grad=True)
-    sigma = torch.sigmoid(straight_clamp(z, 6.0))
-    assert sigma.detach().tolist() == pytest.approx([float(torch.sigmoid(torch.tensor(-6.0))), float(torch.sigmoid(
-        torch.tensor(0.5))), float(torch.sigmoid(torch.tensor(6.0)))])
-    sigma.sum().backward()
-    assert z.grad.tolist() == pytest.approx(_sigmoid_slope([-6.0, 0.5, 6.0]))
-    losses = _computer(density_logit_clip=6.0)
-    logit = torch.tensor([-20.0, 0.0]).view(1, 2, 1, 1)
-    outputs = {"density": torch.sigmoid(logit), "density_logit": logit}
-    assert torch.allclose(losses.render_density(outputs["density"], outputs).flatten(),
-                          torch.sigmoid(torch.tensor([-6.0, 0.0])))
-    official = _computer()
-    assert official.render_density(outputs["density"], outputs) is outputs["density"]
-
-
-FOOTPRINT_OPTIONS = {   # the recommended rendering (docs/training.md; its free prior reads every σ), a gradient floor
+FOOTPRINT_OPTIONS = {   # the recommended rendering (docs/training.md; its free prior reads every σ)
     "free_beyond_grid": True, "free_before_point": True, "free_stretch": "points", "box_line_of_sight": True,
     "ray_sampling": "sqrt-balanced", "point_semantics_weight": 1.0, "point_density_weight": 1.0,
-    "free_prior_weight": 2.0, "density_grad_floor": 6.0}
+    "free_prior_weight": 2.0}
 
 
 @pytest.mark.parametrize("options", [{}, FOOTPRINT_OPTIONS, {"flow": True}], ids=["2d-base", "recipe", "flow"])

@@ -7,7 +7,8 @@ defaults, which are the paper's *Base* setting as the official code trains it (s
 recipes of the paper's ablation ladder carry their row (``ladder_row``; ``benchmarks/`` picks rows by it). What each
 recipe scored, and on which protocol, is ``measured``, with the page of docs/ that holds the table (``source``);
 ``step_seconds`` is the cost of one ``tiny`` step (float32, 2 threads, 4,096 rays) on the reference machine, whose
-float32 matmul rate is :data:`REFERENCE_GFLOPS`, measured by ``benchmarks/perf/recipe_steps.py`` (docs/results.md#training-speed).
+float32 matmul rate is :data:`REFERENCE_GFLOPS`, measured by ``benchmarks/perf/recipe_steps.py``
+(docs/results.md#training-speed).
 
 Also here: the optimisation values each model preset defaults to (:data:`PRESET_SCHEDULES`), which a recipe leaves
 to the preset.
@@ -37,8 +38,8 @@ REFERENCE_GFLOPS = 363.0   # float32 matmul 1024³, 2 threads, of the machine be
 class Recipe:
     """One named recipe: ``settings`` {TrainConfig field: value} over the dataclass's defaults (the paper's Base),
     a one-line ``description``, what it ``supervises``, its figure (``measured``; None: not measured as spelled
-    here) and the docs page behind it (``source``), its row in the paper's ablation ladder (or None), and the seconds of a ``tiny`` step on the
-    reference machine (None: not measured)."""
+    here) and the docs page behind it (``source``), its row in the paper's ablation ladder (or None), and the
+    seconds of a ``tiny`` step on the reference machine (None: not measured)."""
 
     name: str
     description: str
@@ -57,10 +58,11 @@ _ROW3 = {"horizon": 0, **_NO_DYNAMICS}
 _ROW2 = {**_ROW3, "depth_loss": False}
 _ROW4 = dict(_NO_DYNAMICS)
 _ROW6 = {"flow": True}
-# How this project renders rays (beyond the paper; what each part adds: docs/results.md#fitting-one-world): the stretch of each ray
-# in front of its LiDAR point and the rays beyond the grid rendered as free (ramped in over 400 steps), rays
-# through annotated boxes dropped, rays drawn ∝ 1/√(their class's count), the point terms with a free prior of 2,
-# no rendered-depth MSE, and flow's moved voxels written to the nearest voxel (the official code's mover).
+# How this project renders rays (beyond the paper; what each part adds: docs/results.md#fitting-one-world): the
+# stretch of each ray in front of its LiDAR point and the rays beyond the grid rendered as free (ramped in over 400
+# steps), rays through annotated boxes dropped, rays drawn ∝ 1/√(their class's count), the point terms with a free
+# prior of 2, no rendered-depth MSE, and flow's moved voxels written to the nearest voxel (the official code's
+# mover).
 _RENDERING = {
     "free_beyond_grid": True, "free_before_point": True, "free_stretch": "points", "box_line_of_sight": True,
     "free_ramp_steps": 400, "ray_sampling": "sqrt-balanced", "point_semantics_weight": 1.0,
@@ -89,7 +91,8 @@ _RECIPES = (
            "at 800 steps on a fresh world", _FITTING,
            ladder_row=1),
     Recipe("paper-semantics", "row 2: rendered semantics only, the current frame, no depth in any term",
-           _RAYS + ", semantics only", _ROW2, "0.3 % mIoU with the recommended rendering: the grid stays empty (1 × 8 world, 2,000 steps)", _LADDER,
+           _RAYS + ", semantics only", _ROW2,
+           "0.3 % mIoU with the recommended rendering: the grid stays empty (1 × 8 world, 2,000 steps)", _LADDER,
            ladder_row=2),
     Recipe("paper-depth", "row 3: rendered semantics and depth, the current frame", _RAYS + ", O = 0", _ROW3,
            None, _LADDER, ladder_row=3),
