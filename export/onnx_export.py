@@ -131,7 +131,7 @@ def deterministic_scatter_add(proto: onnx.ModelProto) -> int:
     ``index_add``: the pooled sums are bit-identical to torch's on every run. The 1-D form adds the same values in
     the same order, but onnxruntime's kernel walks a 1-D index about 4x faster than the 2-D one (per-element offset
     arithmetic over one axis instead of two; measured 135 vs 35 ms for 34,560 x 32 updates on the loaded 2-core
-    machine, docs/model.md). Only the 2-D pooling form the
+    machine, docs/results.md#inference). Only the 2-D pooling form the
     exporter writes for ``index_add`` is accepted; any other ScatterND with a reduction is an ExportError.
     """
     inferred = onnx.shape_inference.infer_shapes(proto).graph

@@ -112,7 +112,7 @@ def voxel_convs(proto: onnx.ModelProto) -> list[str]:
     """Names of the Conv nodes downstream of the voxel pooling (the ``ScatterElements`` that sum the lifted
     features into the grid): the 3D decoder's convolutions. Kept in float32 by the int8 variant: quantised, they
     changed the predicted occupancy of 29 % of the voxels of a trained base on the real frame (density error
-    0.68), against 0.06 % with them in float32 (docs/model.md)."""
+    0.68), against 0.06 % with them in float32 (docs/results.md#inference)."""
     consumers: dict[str, list] = {}
     for n in proto.graph.node:
         for i in n.input:
@@ -135,7 +135,7 @@ INT8_OP_TYPES = ["Conv"]
 # 7 bits: onnxruntime's u8s8 kernels on x86 CPUs without VNNI (AVX2 only) sum pairs of u8·s8 products in int16
 # (vpmaddubsw), which saturates with 8-bit weights, so a "full"-range graph is only exact on CPUs with VNNI or AMX
 # (one instruction multiplies and accumulates in int32). "full" keeps the 8th bit (half the rounding step of the
-# weights) for such CPUs; docs/model.md measures both.
+# weights) for such CPUs; docs/results.md#inference measures both.
 
 
 def calibration_frames(folder: str | Path, cfg: ModelConfig, count: int) -> list[dict]:

@@ -24,7 +24,7 @@ SIGMA_PRIOR_LOGIT = -2.2
 # In eval mode a trunk at most this many voxels high runs as 2-D convolutions with z folded into the channels
 # (:func:`fold_conv`): the same map, computed by the runtimes' fast 2-D kernels. onnxruntime 1.32 on this CPU runs
 # tiny's 3x3x3 Conv on [1, 32, 50, 50, 4] 2.6x slower than the folded Conv2d on [1, 128, 50, 50] (4/3 of the
-# FLOPs); at base's height 8 (8/3 of the FLOPs) the two cost the same, so base keeps Conv3d (docs/model.md).
+# FLOPs); at base's height 8 (8/3 of the FLOPs) the two cost the same, so base keeps Conv3d (docs/results.md#inference).
 FOLD_Z_MAX = 4
 
 
