@@ -25,16 +25,21 @@ def _weights(ckpt):
 
 
 def test_step_work_counts_what_the_supervision_uses():
+    """A step's work is what its batch carries: the rays it renders, the voxels its 3D loss reads (every voxel, or
+    those inside mask_camera with voxel_mask: the targets' count)."""
     from occflownet.train.loop import step_work
-    from occflownet.train.recipe import TrainConfig
+    from occflownet.train.losses import voxel_targets
 
-    mask = torch.zeros(2, 200, 200, 16, dtype=torch.bool)
-    mask[0, :10] = True                                                     # 10 * 200 * 16 = 32,000 voxels
-    batch = {"ray_depths": torch.zeros(3000), "occ_semantics": torch.zeros(2, 200, 200, 16), "occ_mask": mask}
-    assert step_work(batch, TrainConfig(supervision="2d")) == {"rays": 3000}
-    assert step_work(batch, TrainConfig(supervision="3d")) == {"voxels": 1_280_000}
-    assert step_work(batch, TrainConfig(supervision="3d", voxel_mask=True)) == {"voxels": 32_000}
-    assert step_work(batch, TrainConfig(supervision="2d+3d")) == {"rays": 3000, "voxels": 1_280_000}
+    mask = torch.zeros(200, 200, 16, dtype=torch.bool)
+    mask[:10] = True                                                        # 10 * 200 * 16 = 32,000 voxels
+    labels = torch.zeros(200, 200, 16, dtype=torch.uint8)
+    every, masked = voxel_targets(labels), voxel_targets(labels, mask)
+    rays = {"ray_depths": torch.zeros(3000)}
+    assert step_work(rays) == {"rays": 3000}
+    assert step_work(every) == {"voxels": 640_000}
+    assert step_work(masked) == {"voxels": 32_000}
+    assert step_work({**rays, **every}) == {"rays": 3000, "voxels": 640_000}
+    assert step_work({"images": torch.zeros(1)}) == {}
 
 
 def test_sampler_is_a_function_of_the_step_and_shards_ranks():
@@ -53,12 +58,12 @@ def test_sampler_is_a_function_of_the_step_and_shards_ranks():
 
 def _fixed_batch_loss(root, out, weights) -> dict:
     """The training loss of a fixed batch (step 0's items, fixed render jitter) under the given raw weights."""
-    from occflownet.data.index import load_index
     from occflownet.model.checkpoint import read_checkpoint
     from occflownet.model.presets import ModelConfig
     from occflownet.model.occupancy_model import create_model
     from occflownet.train.recipe import TrainConfig
     from occflownet.train.dataset import TrainingSamples, collate
+    from occflownet.train import loop
     from occflownet.train.step import LossComputer
 
     payload = read_checkpoint(out / "checkpoints" / "last.pt")
@@ -67,8 +72,8 @@ def _fixed_batch_loss(root, out, weights) -> dict:
     model = create_model(model_cfg)
     model.load_state_dict(weights)
     model.train()  # batch statistics, as in training
-    index = load_index(root)
-    data = TrainingSamples(root, index, index.split_positions("all"), cfg)
+    index, positions, flows = loop._training_data(cfg)            # the run's samples and, with flow, its records
+    data = TrainingSamples(root, index, positions, cfg, flows)
     batch = collate([data[(i, 0)] for i in range(3)])
     losses = LossComputer(cfg, model_cfg, None)
     with torch.no_grad():
@@ -78,9 +83,11 @@ def _fixed_batch_loss(root, out, weights) -> dict:
 
 
 def test_train_2d_reduces_the_loss_and_writes_a_usable_checkpoint(prepared_synth_root, tmp_path):
+    # the paper's settings (rendered depth MSE and semantics, LiDAR depth): both rendered terms fall within 12 steps
     root, _ = prepared_synth_root
     out = tmp_path / "run"
-    assert main(_train_argv(root, out, "--max-steps", "12", "--horizon", "1", "--warmup-steps", "1")) == 0
+    assert main(_train_argv(root, out, "--recipe", "paper", "--max-steps", "12", "--horizon", "1",
+                            "--warmup-steps", "1")) == 0
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log] == list(range(1, 13))
     assert {"loss", "render_depth", "render_semantics", "lidar_depth", "rays_per_s", "lr"} <= set(log[0])
@@ -208,7 +215,8 @@ def test_free_space_beams_and_unmasked_voxel_losses_train(prepared_synth_root, t
     out = tmp_path / "free"
     assert main(_train_argv(root, out, "--max-steps", "2", "--horizon", "1", "--supervision", "2d+3d",
                             "--free-space", "--free-beyond-grid", "--free-before-point", "--box-line-of-sight",
-                            "--free-stretch", "points", "--free-rays-per-step", "256", "--head-init", "official")) == 0
+                            "--free-stretch", "points", "--free-rays-per-step", "256", "--head-init", "official",
+                            "--free-ramp-steps", "0")) == 0
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert {"free_space", "free_before", "voxel_density", "render_depth"} <= set(log[0])
     assert log[0]["free_space"] > 0 and log[0]["free_before"] > 0
