@@ -6,9 +6,14 @@ forward(trunk grid [B, Xc, Yc, Zc, C], fine points (rows int64 [N], features [N,
 
 With stride s > 1 the trunk output is upsampled by a learned depth-to-space projection (one linear map per
 sub-voxel, i.e. a transposed Conv3d with kernel = stride = s); the full-resolution lifted features (skip) are
-scatter-added straight into that upsampled grid (pooling then projecting equals projecting then pooling, so the
-depth head predicts the skip features in head width and no dense intermediate grid is built); the heads then run
-on every full-resolution voxel. With s = 1 the heads run on the trunk output.
+added straight into that upsampled grid (pooling then projecting equals projecting then pooling, so the depth
+head predicts the skip features in head width and no dense intermediate grid is built); the heads then run on
+every full-resolution voxel. With s = 1 the heads run on the trunk output.
+
+Inference (:meth:`VoxelDecoder.fused_occupancy`, the exported path) computes the same map in the order a CPU runs
+fastest: the trunk's 3x3x3 convolutions as three 2-D convolutions over the z-shifted grid (:func:`conv_z`), and
+the per-voxel chain (projection, skip features, ReLU, Φσ) over slabs of the grid whose intermediates fit in the
+cache (:func:`slab_width`), Φs only on the voxels with σ ≥ τ.
 """
 from __future__ import annotations
 
@@ -21,11 +26,11 @@ from occflownet.occ3d import FREE, NUM_CLASSES
 # Initial bias of Φσ's output: σ starts near sigmoid(-2.2) ≈ 0.1 (most of space is free), so freshly initialised
 # models render rays that travel into the scene instead of stopping in the first voxels.
 SIGMA_PRIOR_LOGIT = -2.2
-# In eval mode a trunk at most this many voxels high runs as 2-D convolutions with z folded into the channels
-# (:func:`fold_conv`): the same map, computed by the runtimes' fast 2-D kernels. onnxruntime 1.32 on this CPU runs
-# tiny's 3x3x3 Conv on [1, 32, 50, 50, 4] 2.6x slower than the folded Conv2d on [1, 128, 50, 50] (4/3 of the
-# FLOPs); at base's height 8 (8/3 of the FLOPs) the two cost the same, so base keeps Conv3d (docs/results.md#inference).
-FOLD_Z_MAX = 4
+# Bytes of one slab's widest per-voxel tensor in the inference chain (:meth:`VoxelDecoder.fused_occupancy`): the
+# projection, Φσ and their intermediates run on slabs of whole x-planes whose widest layer fits in a core's 2 MB
+# L2 cache (tiny: 2 planes of 12,800 voxels, Φσ's hidden layer 16 wide; base: 1 plane of 6,400 voxels, 64 wide),
+# instead of 640,000-row tensors written to memory and read back between layers (docs/model.md, *Inference graph*).
+SLAB_BYTES = 4 * 1024 * 1024
 
 
 class ResBlock3d(nn.Module):
@@ -44,19 +49,40 @@ class ResBlock3d(nn.Module):
         return self.relu(self.bn2(self.conv2(out)) + x)
 
 
-def fold_conv(conv: nn.Conv3d, bn: nn.BatchNorm3d, height: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """A bias-free Conv3d (kernel k³, padding k // 2) followed by an eval-mode BatchNorm3d, on [B, C, X, Y, Z] with
-    Z = ``height``, as one Conv2d on [B, Z·C, X, Y] (channel z·C + c = channel c at height z): → (weight
-    [Z·O, Z·C, k, k], bias [Z·O]). Output height z reads input heights z + dz − k // 2 (zero padding: the
-    blocks outside the grid are zero); the BatchNorm is folded in (scale into the weight, shift into the bias)."""
+def z_slices(conv: nn.Conv3d, bn: nn.BatchNorm3d) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """A bias-free Conv3d (kernel k³, padding k // 2) followed by an eval-mode BatchNorm3d → (k weights
+    [O, C, k, k], one per z offset dz = 0 .. k − 1, bias [O]), the BatchNorm folded in (scale into the weights,
+    shift into the bias): the Conv3d is the sum over dz of Conv2d(weight[dz]) on the input heights z + dz − k // 2
+    (:func:`conv_z`)."""
     scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)                         # [O]
     w = conv.weight * scale[:, None, None, None, None]                               # [O, C, k, k, k]
-    bias = bn.bias - bn.running_mean * scale
-    r = w.shape[-1] // 2
-    zero = torch.zeros_like(w[..., 0])
-    rows = [torch.cat([w[..., zi - zo + r] if abs(zi - zo) <= r else zero for zi in range(height)], dim=1)
-            for zo in range(height)]
-    return torch.cat(rows, dim=0), bias.repeat(height)
+    return [w[..., dz] for dz in range(w.shape[-1])], bn.bias - bn.running_mean * scale
+
+
+def conv_z(x: torch.Tensor, weights: list[torch.Tensor], bias: torch.Tensor) -> torch.Tensor:
+    """A Conv3d on z-major grids: x [B, Z, C, X, Y] → [B, Z, O, X, Y], out[z] = bias + sum over dz of
+    conv2d(x[z + dz − r], weights[dz]) (r = len(weights) // 2, zero outside 0 .. Z − 1; 2-D padding k // 2).
+    Each 2-D convolution runs on the B·Z planes as a batch — the same FLOPs as the Conv3d, in the runtimes' fast
+    2-D kernels (onnxruntime's Conv3d on base's [1, 32, 100, 100, 8] takes 1.7x as long; docs/model.md)."""
+    b, z, c, h, w = x.shape
+    r = len(weights) // 2
+    out = None
+    for dz, weight in enumerate(weights):
+        shift = dz - r                                   # this term reads input height z + shift
+        src = x
+        if shift:
+            pad = torch.zeros_like(x[:, :abs(shift)])
+            src = torch.cat([x[:, shift:], pad], 1) if shift > 0 else torch.cat([pad, x[:, :shift]], 1)
+        y = F.conv2d(src.reshape(b * z, c, h, w), weight, bias if shift == 0 else None,
+                     padding=weight.shape[-1] // 2)
+        out = y if out is None else out + y
+    return out.reshape(b, z, -1, h, w)
+
+
+def slab_width(planes: int, voxels_per_plane: int, widest: int) -> int:
+    """x-planes per slab of the inference chain: as many as keep a slab's widest per-voxel tensor (``widest``
+    float32 channels) within SLAB_BYTES, at least 1, at most ``planes``."""
+    return max(1, min(planes, SLAB_BYTES // (4 * widest * voxels_per_plane)))
 
 
 # Row blocks of RowLinear's weight gradient: the sum over N rows as one batched product of this many blocks.
@@ -179,6 +205,7 @@ class VoxelDecoder(nn.Module):
             self.up = None
             head_in = channels
         self.head_channels = head_in
+        self.widest = max(head_in, *sigma_hidden)         # the widest per-voxel tensor of the density chain
         self.sigma_head = mlp(head_in, sigma_hidden, 1)
         self.semantic_head = mlp(head_in, semantic_hidden, NUM_CLASSES)
         if head_init == "official":  # the official decoder: Xavier-uniform weights and zero biases in both heads
@@ -190,19 +217,18 @@ class VoxelDecoder(nn.Module):
 
     def trunk_rows(self, trunk: torch.Tensor) -> torch.Tensor:
         """Trunk grid [B, Xc, Yc, Zc, C] → stem and residual blocks → [M, Ct] (M = B·Xc·Yc·Zc, rows in
-        (b, xc, yc, zc) order). Training (and any grid higher than FOLD_Z_MAX) runs the Conv3d modules; eval mode runs the same
-        map as 2-D convolutions with z folded into the channels (:func:`fold_conv`, BatchNorm folded in)."""
+        (b, xc, yc, zc) order). Training runs the Conv3d modules; eval mode the same map on the z-major grid, each
+        3x3x3 convolution as three 2-D ones (:func:`conv_z`, BatchNorm folded in, :func:`z_slices`)."""
         b, xc, yc, zc, _ = trunk.shape
-        if self.training or zc > FOLD_Z_MAX:
+        if self.training:
             x = self.blocks(self.stem(trunk.permute(0, 4, 1, 2, 3)))              # [B, Ct, Xc, Yc, Zc]
             return x.permute(0, 2, 3, 4, 1).reshape(-1, x.shape[1])
-        x = trunk.permute(0, 3, 4, 1, 2).reshape(b, -1, xc, yc)                    # [B, Zc·C, Xc, Yc]
-        x = torch.relu(F.conv2d(x, *fold_conv(self.stem[0], self.stem[1], zc)))
+        x = trunk.permute(0, 3, 4, 1, 2)                                           # [B, Zc, C, Xc, Yc]
+        x = torch.relu(conv_z(x, *z_slices(self.stem[0], self.stem[1])))
         for block in self.blocks:
-            out = torch.relu(F.conv2d(x, *fold_conv(block.conv1, block.bn1, zc), padding=1))
-            x = torch.relu(F.conv2d(out, *fold_conv(block.conv2, block.bn2, zc), padding=1) + x)
-        ct = x.shape[1] // zc
-        return x.reshape(b, zc, ct, xc, yc).permute(0, 3, 4, 1, 2).reshape(-1, ct)  # [M, Ct]
+            out = torch.relu(conv_z(x, *z_slices(block.conv1, block.bn1)))
+            x = torch.relu(conv_z(out, *z_slices(block.conv2, block.bn2)) + x)
+        return x.permute(0, 3, 4, 1, 2).reshape(-1, x.shape[2])                    # [M, Ct]
 
     def voxel_features(self, trunk: torch.Tensor, fine_points: tuple[torch.Tensor, torch.Tensor] | None):
         """Head input features [B·Xc·Yc·Zc·s³, head_channels], rows in block layout order."""
@@ -240,18 +266,64 @@ class VoxelDecoder(nn.Module):
                                           else torch.index_select(x, 0, logit_rows))
         return sigma, semantic
 
-    def fused_occupancy(self, trunk: torch.Tensor, fine_points, threshold: float):
-        """Inference: (occupancy uint8, density) [B, Xc, Yc, Zc, s³], Φs evaluated only where σ ≥ threshold.
+    def head_input(self, rows: torch.Tensor, addend: torch.Tensor | None) -> torch.Tensor:
+        """Eval: trunk rows [m, Ct] and, with skip features, ``addend`` [m·s³, Ch] (the projection's bias plus
+        the summed skip features of the m·s³ voxels, block layout; :func:`skip_table`) → the heads' input
+        [m·s³, Ch]: relu(projection + skip), the addend entering the matrix product as its C (ONNX Gemm); the
+        trunk rows themselves when s = 1."""
+        if self.up is None:
+            return rows
+        if addend is None:
+            return torch.relu(self.up(rows)).reshape(-1, self.head_channels)
+        y = torch.addmm(addend.reshape(rows.shape[0], -1), rows, self.up.weight.t())
+        return torch.relu(y).reshape(-1, self.head_channels)
 
-        Equals fusing :meth:`forward`'s outputs (argmax where σ ≥ τ else free) but skips the semantic MLP on free
-        voxels (the gather/scatter export as NonZero/Gather/ScatterND; occupied voxels are unique, no reduction).
-        """
+    def fused_occupancy(self, trunk: torch.Tensor, fine_points, threshold: float):
+        """Inference: (occupancy uint8, density float32) [B, X, Y, Z] (grid layout), from the trunk grid
+        [B, Xc, Yc, Zc, C] and the pooled skip features (unique block-layout rows int64 [U], sums [U, Ch], as
+        :class:`~occflownet.model.lift.LiftSplat` gives them in eval mode) or None.
+
+        Equals fusing :meth:`forward`'s outputs (argmax where σ ≥ τ else free). The per-voxel chain — projection,
+        skip features, ReLU, Φσ, sigmoid — runs slab by slab (:func:`slab_width` x-planes of every sample, static
+        shapes), so its 640,000-row intermediates are never written out whole; a slab reads its skip features
+        through a dense map of row numbers (:func:`skip_table`) and turns its σ into grid layout. The slabs hand
+        on σ and the heads' input; Φs runs once, on the voxels with σ ≥ τ (NonZero/Gather/ScatterND; rows are
+        unique, no reduction)."""
         b, xc, yc, zc, _ = trunk.shape
-        x = self.voxel_features(trunk, fine_points)
-        density = torch.sigmoid(self.sigma_head(x)).reshape(-1)                    # [B·Xc·Yc·Zc·s³]
-        occupied = torch.nonzero(density >= threshold).reshape(-1)
-        labels = torch.argmax(self.semantic_head(torch.index_select(x, 0, occupied)), dim=-1).to(torch.uint8)
-        occupancy = torch.full(density.shape, FREE, dtype=torch.uint8, device=x.device)
-        occupancy = occupancy.index_put((occupied,), labels)
-        shape = (b, xc, yc, zc, self.stride ** 3)
-        return occupancy.reshape(shape), density.reshape(shape)
+        s = self.stride
+        per = yc * zc * s ** 3                                                     # voxels per x-plane and sample
+        rows = self.trunk_rows(trunk).reshape(b, xc, yc * zc, -1)                  # [B, Xc, Yc·Zc, Ct]
+        skip = None if fine_points is None or self.up is None else skip_table(fine_points, self.up.bias,
+                                                                                b * xc * per, s ** 3)
+        width = slab_width(xc, per, self.widest)
+        density, inputs = [], []
+        for x0 in range(0, xc, width):
+            n = min(width, xc - x0)
+            addend = None if skip is None else torch.index_select(
+                skip[1], 0, skip[0].reshape(b, xc, per)[:, x0:x0 + n].reshape(-1))  # [B·n·per, Ch]
+            x = self.head_input(rows[:, x0:x0 + n].reshape(-1, rows.shape[-1]), addend)
+            sigma = torch.sigmoid(self.sigma_head(x)).reshape(b, n, yc, zc, s, s, s)
+            density.append(sigma.permute(0, 1, 4, 2, 5, 3, 6).reshape(b, n * s, yc * s, zc * s))
+            inputs.append(x.reshape(b, n, per, -1))
+        density = torch.cat(density, 1)                                            # [B, X, Y, Z]
+        occupied = torch.nonzero(density.reshape(-1) >= threshold).reshape(-1)     # grid rows
+        inputs = torch.cat(inputs, 1).reshape(-1, inputs[0].shape[-1])             # block layout
+        picked = torch.index_select(inputs, 0, block_rows(occupied, tuple(density.shape[1:]), s))
+        labels = torch.argmax(self.semantic_head(picked), dim=-1).to(torch.uint8)
+        occupancy = torch.full((density.numel(),), FREE, dtype=torch.uint8, device=density.device)
+        return occupancy.index_put((occupied,), labels).reshape(density.shape), density
+
+
+def skip_table(fine_points: tuple[torch.Tensor, torch.Tensor], bias: torch.Tensor, voxels: int, s3: int):
+    """Pooled skip features (unique block-layout rows int64 [U] of a flattened grid of ``voxels`` voxels, sums
+    [U, Ch]) and the projection's bias [s³·Ch] → (map int64 [voxels], table [U + s³, Ch]): table row u < U is sum u
+    plus the bias of its sub-voxel, row U + k the bias of sub-voxel k alone; the map gives each voxel its row (a
+    voxel without skip features, sub-voxel k = row mod s³: U + k). A gather of the table through a slice of the map
+    is that slice's projection bias plus skip features — one scatter of U numbers instead of one of U·Ch features
+    into a dense [voxels, Ch] grid."""
+    rows, sums = fine_points
+    count = rows.shape[0]
+    sub_bias = bias.reshape(s3, -1)                                                # [s³, Ch]
+    table = torch.cat([sums + torch.index_select(sub_bias, 0, torch.remainder(rows, s3)), sub_bias])
+    index = torch.remainder(torch.arange(voxels, device=rows.device), s3) + count
+    return torch.index_put(index, (rows,), torch.arange(count, device=rows.device)), table

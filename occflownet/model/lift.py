@@ -4,9 +4,13 @@ Geometry is computed inside the graph from the runtime ``feature_intrinsics`` an
 feature cell (u, v) with depth bin centre d (camera-frame z-depth) is the camera point ``d · K_f⁻¹ [u, v, 1]``,
 moved into the ego frame by ``cam2ego``, and falls into voxel ``GRID.index_of(p)``
 (``floor((p - GRID.lower) / GRID.voxel_size)``).
-Points outside the grid contribute nothing (they are routed to a discarded dump row).
 
-Pooling is a scatter-add (``index_add`` → ONNX ScatterND with ``reduction="add"``, correct for repeated indices).
+Pooling sums the lifted features of the points that fall into a voxel. Training (:meth:`LiftSplat.forward` in train
+mode) weights the points outside the grid 0 and scatter-adds every point (``index_add``, whose backward is a
+gather). Eval mode — the exported path — keeps the points inside the grid only and sums them by sorted segment sums
+(:meth:`LiftSplat._pool_sorted`): the points sorted by voxel, their features summed cumulatively, and the
+difference of that sum across each run of equal voxels; its cost follows the points, and nothing is scattered
+with a reduction.
 The trunk grid is the full grid coarsened by ``stride``; the optional fine (skip) features keep full resolution
 and are addressed in *block layout* [B, X/s, Y/s, Z/s, s, s, s] so the decoder can add them without transposes.
 """
@@ -67,6 +71,18 @@ def frustum_points(feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor, dept
     return origin + depths[:, None, None, None] * direction                         # [B, V, D, h, w, 3]
 
 
+def block_layout_rows(index: torch.Tensor, batch: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Voxel indices int64 [..., 3] inside the grid and their sample ``batch`` (int64, broadcastable to [...]) →
+    (coarse_rows, fine_rows) int64 [...]: rows of the flattened trunk grid [B·X/s·Y/s·Z/s] and of the flattened
+    full-resolution grid in block layout [B·X/s·Y/s·Z/s·s³]."""
+    cx, cy, cz = (n // stride for n in GRID.shape)
+    coarse = torch.div(index, stride, rounding_mode="floor")                        # [..., 3] (>= 0)
+    sub = index - coarse * stride
+    coarse_rows = ((batch * cx + coarse[..., 0]) * cy + coarse[..., 1]) * cz + coarse[..., 2]
+    fine_rows = ((coarse_rows * stride + sub[..., 0]) * stride + sub[..., 1]) * stride + sub[..., 2]
+    return coarse_rows, fine_rows
+
+
 def voxel_rows(points: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Ego points [B, ..., 3] → (coarse_rows, fine_rows int64 [B, ...], valid float32 [B, ...]).
 
@@ -80,13 +96,60 @@ def voxel_rows(points: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.T
     shape = torch.tensor(GRID.shape, dtype=torch.int64, device=points.device)
     valid = torch.all((index >= 0) & (index < shape), dim=-1)                       # [B, ...]
     index = torch.where(valid[..., None], index, torch.zeros_like(index))
-    cx, cy, cz = (n // stride for n in GRID.shape)
-    coarse = torch.div(index, stride, rounding_mode="floor")                        # [B, ..., 3] (>= 0)
-    sub = index - coarse * stride
     batch = torch.arange(points.shape[0], device=points.device).reshape((-1,) + (1,) * (points.dim() - 2))
-    coarse_rows = ((batch * cx + coarse[..., 0]) * cy + coarse[..., 1]) * cz + coarse[..., 2]
-    fine_rows = ((coarse_rows * stride + sub[..., 0]) * stride + sub[..., 1]) * stride + sub[..., 2]
+    coarse_rows, fine_rows = block_layout_rows(index, batch, stride)
     return coarse_rows, fine_rows, valid.to(torch.float32)
+
+
+def points_inside(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Ego points [B, ..., 3] → (keep int64 [K]: the flat indices of the points inside the grid, ascending;
+    index int64 [K, 3]: their voxels). The voxel is ``GRID.index_of``'s (floor in the points' float32), and a
+    point is inside when all three lie in [0, shape): the points :func:`voxel_rows` calls valid (a non-finite
+    point fails the comparisons). Only the kept points are turned into integers."""
+    cell = torch.floor((points - points.new_tensor(GRID.lower)) / GRID.voxel_size)  # [B, ..., 3] float
+    inside = torch.all((cell >= 0) & (cell < cell.new_tensor(GRID.shape)), dim=-1)
+    keep = torch.nonzero(inside.reshape(-1)).reshape(-1)                           # [K]
+    return keep, torch.index_select(cell.reshape(-1, 3), 0, keep).to(torch.int64)
+
+
+def run_ends(keys: torch.Tensor) -> torch.Tensor:
+    """Sorted keys int64 [K] → int64 [U]: the position of the last element of each run of equal keys."""
+    last = torch.cat([keys[1:] != keys[:-1], torch.ones_like(keys[:1], dtype=torch.bool)])
+    return torch.nonzero(last).reshape(-1)
+
+
+# Points per block of the sorted segment sums (:class:`BlockedPrefix`): cumulative sums restart at every block, in
+# float32, so that their magnitude stays that of at most this many lifted features.
+POOL_BLOCK = 16
+
+
+class BlockedPrefix:
+    """Prefix sums of sorted values float32 [K', C] (K' a multiple of POOL_BLOCK, the tail zero-padded) that stay
+    accurate over hundreds of thousands of rows: float32 cumulative sums within each block of POOL_BLOCK rows
+    (``local``), and the sums of all earlier blocks in float64 (``offsets``, centred on the mean block total
+    ``mean`` so that even a runtime that keeps float64 as float32 sums small numbers). ``at(pos)`` is the sum of
+    rows 0 .. pos, in float64."""
+
+    def __init__(self, values: torch.Tensor):
+        c = values.shape[-1]
+        self.local = torch.cumsum(values.reshape(-1, POOL_BLOCK, c), 1)            # [K'/L, L, C] float32
+        totals = self.local[:, -1].to(torch.float64)                               # [K'/L, C]
+        self.mean = totals.mean(0)
+        centred = totals - self.mean
+        self.offsets = torch.cumsum(centred, 0) - centred                         # exclusive, centred
+        self.local = self.local.reshape(-1, c)
+
+    def at(self, pos: torch.Tensor) -> torch.Tensor:
+        """Inclusive prefix sums float64 [U, C] at positions int64 [U]."""
+        block = torch.div(pos, POOL_BLOCK, rounding_mode="floor")
+        return (torch.index_select(self.offsets, 0, block) + block[:, None].to(torch.float64) * self.mean
+                + torch.index_select(self.local, 0, pos).to(torch.float64))
+
+    def run_sums(self, ends: torch.Tensor) -> torch.Tensor:
+        """The sums over runs of rows ending at ``ends`` int64 [U] (:func:`run_ends`) → float32 [U, C]: the
+        difference of the prefix across each run, in float64, rounded to float32 once."""
+        at = self.at(ends)
+        return (at - torch.cat([torch.zeros_like(at[:1]), at[:-1]])).to(torch.float32)
 
 
 def scatter_pool(features: torch.Tensor, rows: torch.Tensor, num_rows) -> torch.Tensor:
@@ -100,9 +163,10 @@ class LiftSplat(nn.Module):
     forward(depth_prob [B, V, D, h, w], context [B, V, h, w, C], fine [B, V, h, w, F] or None,
             feature_intrinsics [B, V, 3, 3], cam2ego [B, V, 4, 4])
     → (trunk grid [B, X/s, Y/s, Z/s, C] (ego frame, summed features),
-       fine points (rows int64 [N], features [N, F]) or None: the full-resolution lifted features, not yet pooled
-       (row = block-layout voxel, see :func:`voxel_rows`); the decoder scatter-adds them into its upsampled grid;
-       in eval mode only the N ≤ B·V·D·h·w points inside the grid, in training all of them, weighted 0 outside).
+       fine points (rows int64 [N], features [N, F]) or None: the full-resolution lifted features (row =
+       block-layout voxel, see :func:`voxel_rows`), which the decoder adds into its upsampled grid; in training
+       every frustum point (N = B·V·D·h·w, weighted 0 outside the grid, rows repeat), in eval mode already pooled:
+       one row per voxel that holds a point, ascending, with the sum of its points' features).
     """
 
     def __init__(self, depth_centers: list[float], stride: int):
@@ -113,32 +177,47 @@ class LiftSplat(nn.Module):
     def forward(self, depth_prob, context, fine, feature_intrinsics, cam2ego):
         b, _, _, h, w = depth_prob.shape
         points = frustum_points(feature_intrinsics, cam2ego, self.depths, h, w)
+        if not self.training:
+            return self._pool_sorted(depth_prob, context, fine, points)
         coarse_rows, fine_rows, valid = voxel_rows(points, self.stride)
         cx, cy, cz = (n // self.stride for n in GRID.shape)
-        if self.training:
-            weight = (depth_prob * valid)[..., None]                               # [B, V, D, h, w, 1]
-            lifted = (weight * context[:, :, None]).reshape(-1, context.shape[-1])  # [N, C]
-            trunk = scatter_pool(lifted, coarse_rows.reshape(-1), b * cx * cy * cz).reshape(b, cx, cy, cz, -1)
-            if fine is None:
-                return trunk, None
-            return trunk, (fine_rows.reshape(-1), (weight * fine[:, :, None]).reshape(-1, fine.shape[-1]))
-        return self._pool_valid(depth_prob, context, fine, coarse_rows, fine_rows, valid)
+        weight = (depth_prob * valid)[..., None]                                   # [B, V, D, h, w, 1]
+        lifted = (weight * context[:, :, None]).reshape(-1, context.shape[-1])      # [N, C]
+        trunk = scatter_pool(lifted, coarse_rows.reshape(-1), b * cx * cy * cz).reshape(b, cx, cy, cz, -1)
+        if fine is None:
+            return trunk, None
+        return trunk, (fine_rows.reshape(-1), (weight * fine[:, :, None]).reshape(-1, fine.shape[-1]))
 
-    def _pool_valid(self, depth_prob, context, fine, coarse_rows, fine_rows, valid):
-        """Eval mode (the exported path): the same sums with the points outside the grid left out before the
-        outer product (about half of them on the real frame: tiny 53 %, base 46 %), so the scatter-add and the
-        products see only the points that count. The kept points stay in their order (NonZero is ascending) and a
-        dropped point only ever added 0 · feature = 0 to row 0, so the pooled sums are bit-identical to the
-        training path's."""
+    def _pool_sorted(self, depth_prob, context, fine, points):
+        """Eval mode (the exported path): the training path's sums over the points inside the grid (about half of
+        the frustum on the real frame: tiny 47 %, base 54 %), as sorted segment sums: the points sorted by voxel
+        (block-layout row; ``topk`` ascending → ONNX ``TopK``, whose ties keep their index order), their
+        lifted context and fine features summed cumulatively (:class:`BlockedPrefix`), and each voxel's sum the
+        difference of that sum across its run of points; the trunk's cells are runs of the same order. Nothing is
+        scattered with a reduction: the trunk grid's rows are set once (ScatterND without a reduction). The sums
+        equal ``index_add``'s up to float32 rounding (prefixes of at most POOL_BLOCK features in float32, the
+        blocks before them in float64)."""
         b, v, d, h, w = depth_prob.shape
         cx, cy, cz = (n // self.stride for n in GRID.shape)
-        keep = torch.nonzero(valid.reshape(-1)).reshape(-1)                        # [K] point indices
-        pixel = torch.div(keep, d * h * w, rounding_mode="floor") * (h * w) + torch.remainder(keep, h * w)
-        pick = torch.index_select                                                  # ONNX Gather
-        weight = pick(depth_prob.reshape(-1), 0, keep)[:, None]                    # [K, 1]
-        lifted = weight * pick(context.reshape(-1, context.shape[-1]), 0, pixel)   # [K, C]
-        trunk = scatter_pool(lifted, pick(coarse_rows.reshape(-1), 0, keep), b * cx * cy * cz)
+        keep, index = points_inside(points)                                        # [K], [K, 3]
+        batch = torch.div(keep, v * d * h * w, rounding_mode="floor")
+        coarse_rows, fine_rows = block_layout_rows(index, batch, self.stride)
+        order = torch.topk(fine_rows, fine_rows.shape[0], largest=False, sorted=True).indices  # [K]
+        key, point = torch.index_select(fine_rows, 0, order), torch.index_select(keep, 0, order)
+        pad = torch.zeros_like(point[:(-point.shape[0]) % POOL_BLOCK])             # to whole blocks: weight 0
+        weight = torch.cat([torch.index_select(depth_prob.reshape(-1), 0, point), pad.to(depth_prob.dtype)])
+        point = torch.cat([point, pad])
+        pixel = torch.div(point, d * h * w, rounding_mode="floor") * (h * w) + torch.remainder(point, h * w)
+
+        def lifted(features):                                                      # [B, V, h, w, C] → [K', C]
+            return weight[:, None] * torch.index_select(features.reshape(-1, features.shape[-1]), 0, pixel)
+
+        ends = run_ends(torch.div(key, self.stride ** 3, rounding_mode="floor") if fine is not None else key)
+        rows = torch.index_select(coarse_rows, 0, torch.index_select(order, 0, ends))
+        trunk = torch.zeros((b * cx * cy * cz, context.shape[-1]), dtype=weight.dtype, device=weight.device)
+        trunk = torch.index_put(trunk, (rows,), BlockedPrefix(lifted(context)).run_sums(ends))
         trunk = trunk.reshape(b, cx, cy, cz, -1)
         if fine is None:
             return trunk, None
-        return trunk, (pick(fine_rows.reshape(-1), 0, keep), weight * pick(fine.reshape(-1, fine.shape[-1]), 0, pixel))
+        ends = run_ends(key)
+        return trunk, (torch.index_select(key, 0, ends), BlockedPrefix(lifted(fine)).run_sums(ends))

@@ -106,12 +106,11 @@ class OccupancyModel(nn.Module):
     def inference(self, images: torch.Tensor, intrinsics: torch.Tensor, cam2ego: torch.Tensor):
         """The exported path: → (occupancy uint8 [B, 200, 200, 16], density float32 [B, 200, 200, 16]).
 
-        Same result as fusing :meth:`forward`'s outputs, but Φs runs only on voxels with σ ≥ τ and the fusion
-        happens in block layout, so only the two small outputs are rearranged."""
+        Same result as fusing :meth:`forward`'s outputs, computed as a CPU runs it fastest: the pooling by sorted
+        segment sums, the per-voxel chain slab by slab, Φs only on voxels with σ ≥ τ
+        (:meth:`~occflownet.model.decoder.VoxelDecoder.fused_occupancy`)."""
         trunk, fine_points, _, _ = self._lift(images, intrinsics, cam2ego)
-        occupancy, density = self.decoder.fused_occupancy(trunk, fine_points, self.cfg.threshold)
-        s = self.cfg.decoder_stride
-        return unblock(occupancy, s), unblock(density, s)
+        return self.decoder.fused_occupancy(trunk, fine_points, self.cfg.threshold)
 
 
 class InferenceGraph(nn.Module):
