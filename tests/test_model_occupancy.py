@@ -49,14 +49,17 @@ def test_forward_outputs_follow_the_contract(tiny):
     assert torch.equal(out["feature_intrinsics"], expected_k)
     assert torch.equal(out["occupancy"], fuse_occupancy(d, out["logits"], cfg.threshold))
     occ, dens = tiny.inference(images, K, T)                  # Φs only where σ ≥ τ: same fused result
-    assert torch.equal(dens, d)      # exact: the same ops on the same full grid in both (Φσ runs on every voxel)
+    # inference sums the pooling in another order (sorted segment sums) and runs the trunk as 2-D convolutions:
+    # the same map up to float32 rounding
+    assert torch.allclose(dens, d, atol=1e-5, rtol=0)
     # Φs runs on the occupied rows only in inference, on every row in forward: a matrix product over other row
     # counts may round differently on other CPUs (~1e-6 of the logits), which can flip the argmax of a voxel whose
-    # two best classes are that close; every other voxel has the same class.
-    differ = occ != out["occupancy"]
+    # two best classes are that close, or whose σ lies within rounding of τ; every other voxel has the same class.
+    away = (d - cfg.threshold).abs() > 1e-5
+    differ = (occ != out["occupancy"]) & away
     top2 = out["logits"].topk(2, dim=-1).values
-    assert float(differ.float().mean()) < 1e-4
-    assert bool((top2[..., 0] - top2[..., 1])[differ].le(1e-4).all()) and torch.equal(occ == FREE, d < cfg.threshold)
+    assert float(differ.float().mean()) < 1e-4 and float(away.float().mean()) > 0.99
+    assert bool((top2[..., 0] - top2[..., 1])[differ].le(1e-4).all()) and torch.equal(occ == FREE, dens < cfg.threshold)
     assert 0.2 < (occ != FREE).float().mean() < 0.8 and len(occ.unique()) >= 3
 
 

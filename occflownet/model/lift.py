@@ -212,7 +212,7 @@ class LiftSplat(nn.Module):
         def lifted(features):                                                      # [B, V, h, w, C] → [K', C]
             return weight[:, None] * torch.index_select(features.reshape(-1, features.shape[-1]), 0, pixel)
 
-        ends = run_ends(torch.div(key, self.stride ** 3, rounding_mode="floor") if fine is not None else key)
+        ends = run_ends(torch.div(key, self.stride ** 3, rounding_mode="floor"))    # runs of trunk cells
         rows = torch.index_select(coarse_rows, 0, torch.index_select(order, 0, ends))
         trunk = torch.zeros((b * cx * cy * cz, context.shape[-1]), dtype=weight.dtype, device=weight.device)
         trunk = torch.index_put(trunk, (rows,), BlockedPrefix(lifted(context)).run_sums(ends))
