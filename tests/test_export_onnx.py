@@ -126,10 +126,11 @@ def test_graph_is_standard_onnx_with_contract_v1_io(exported):
     assert types["density"] == types["intrinsics"] == types["cam2ego"] == onnx.TensorProto.FLOAT
     scatters = sorted((n.op_type, next((a.s.decode() for a in n.attribute if a.name == "reduction"), "none"))
                       for n in proto.graph.node if n.op_type.startswith("Scatter"))
-    # voxel pooling (trunk grid + full-resolution skip) sums repeated indices: ScatterElements (single-threaded in
-    # onnxruntime, index order) instead of the exporter's ScatterND(add), which races across threads; the one
-    # reduction-less ScatterND writes class labels at the NonZero indices of occupied voxels, which are unique
-    assert scatters == [("ScatterElements", "add"), ("ScatterElements", "add"), ("ScatterND", "none")]
+    # no scatter adds (onnxruntime's ScatterND(add) races across threads, its ScatterElements(add) is
+    # single-threaded): the pooling sums by sorted segment sums and writes each trunk cell once, the skip features'
+    # row map writes each pooled voxel once, and the labels go to the NonZero indices of the occupied voxels: three
+    # reduction-less ScatterND on unique indices
+    assert scatters == [("ScatterND", "none")] * 3
 
 
 def test_metadata(exported):

@@ -1,10 +1,13 @@
-"""The voxel pooling stage exported alone: scatter-add with repeated indices, and the 90° rig-rotation geometry.
+"""The voxel pooling stage exported alone: the exported path's sorted segment sums, the scatter-add rewrite that the
+export applies to any ``index_add``, and the 90° rig-rotation geometry.
 
-The TorchScript exporter's known bug (index_add → ScatterND *without* reduction) keeps only one of the repeated
-updates per voxel; ``test_pooling_with_many_points_per_voxel`` fails on such a graph (checked below by removing the
-reduction attribute). The dynamo exporter writes ``ScatterND(reduction="add")``, which onnxruntime runs on several
-threads without synchronisation (lost updates at random); the export rewrites it as ScatterElements
-(``deterministic_scatter_add``), whose sums are bit-identical to torch's ``index_add`` on every run.
+Eval mode (the exported model) pools by sorted segment sums: no scatter with a reduction, the same sums as
+``index_add`` to float32 rounding, the same bits on every run. The training path's ``index_add`` exports as
+``ScatterND(reduction="add")``, which onnxruntime runs on several threads without synchronisation (lost updates at
+random); the export rewrites any such node as ScatterElements (``deterministic_scatter_add``), whose sums are
+bit-identical to torch's ``index_add`` on every run; the TorchScript exporter's known bug (index_add → ScatterND
+*without* reduction) keeps only one of the repeated updates per voxel, which
+``test_the_repeated_index_check_catches_a_scatter_without_reduction`` shows the checks would catch.
 """
 import numpy as np
 import onnx
@@ -20,15 +23,20 @@ H, W = 6, 10
 
 
 class PoolingStage(torch.nn.Module):
-    """depth_prob [1, 6, D, h, w], context [1, 6, h, w, C], intrinsics, cam2ego → (trunk grid, dense fine grid)."""
+    """depth_prob [1, 6, D, h, w], context [1, 6, h, w, C], intrinsics, cam2ego → (trunk grid, dense fine grid),
+    pooled by the training path's ``index_add`` (``scatter_add=True``) or the eval path's sorted segment sums."""
 
-    def __init__(self, depths, stride):
+    def __init__(self, depths, stride, scatter_add: bool):
         super().__init__()
         self.lift = LiftSplat(depths, stride)
+        self.scatter_add = scatter_add
 
     def forward(self, depth_prob, context, feature_intrinsics, cam2ego):
+        self.lift.training = self.scatter_add
         trunk, fine_points = self.lift(depth_prob, context, context, feature_intrinsics, cam2ego)
-        return trunk, fine_grid(fine_points, depth_prob.shape[0], self.lift.stride)
+        if self.scatter_add:
+            return trunk, fine_grid(fine_points, depth_prob.shape[0], self.lift.stride)
+        return trunk, fine_points[0], fine_points[1]
 
 
 def _inputs(depths, seed=0):
@@ -40,18 +48,31 @@ def _inputs(depths, seed=0):
     return depth_prob, context, K, T
 
 
+# depth bins 1 cm apart: every pixel's 16 frustum points share a voxel, neighbouring pixels often too
+DEPTHS = [6.0 + 0.01 * i for i in range(16)]
+NAMES = ["depth_prob", "context", "feature_intrinsics", "cam2ego"]
+
+
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    # depth bins 1 cm apart: every pixel's 16 frustum points share a voxel, neighbouring pixels often too
-    depths = [6.0 + 0.01 * i for i in range(16)]
-    module = PoolingStage(depths, stride=2).eval()
+    """The training path's index_add pooling, exported and rewritten as the export does."""
+    module = PoolingStage(DEPTHS, stride=2, scatter_add=True).eval()
     path = tmp_path_factory.mktemp("pool") / "pool.onnx"
-    names = ["depth_prob", "context", "feature_intrinsics", "cam2ego"]
-    traced = trace_to_onnx(module, _inputs(depths), path, names, ["trunk", "fine"], None)
+    traced = trace_to_onnx(module, _inputs(DEPTHS), path, NAMES, ["trunk", "fine"], None)
     proto = onnx.ModelProto()
     proto.CopyFrom(traced)
     assert deterministic_scatter_add(proto) == 2                  # trunk and fine pooling
-    return module, depths, proto, traced
+    return module, DEPTHS, proto, traced
+
+
+@pytest.fixture(scope="module")
+def exported_sorted(tmp_path_factory):
+    """The eval path's sorted segment sums, exported (the rewrite finds nothing to do)."""
+    module = PoolingStage(DEPTHS, stride=2, scatter_add=False).eval()
+    path = tmp_path_factory.mktemp("pool") / "pool_sorted.onnx"
+    proto = trace_to_onnx(module, _inputs(DEPTHS), path, NAMES, ["trunk", "rows", "sums"], None)
+    assert deterministic_scatter_add(proto) == 0
+    return module, proto
 
 
 def _run(proto, inputs, threads=0):
@@ -122,14 +143,46 @@ def test_the_repeated_index_check_catches_a_scatter_without_reduction(exported):
     assert not np.allclose(trunk_o, trunk_t.numpy(), atol=1e-3)
 
 
-def test_turning_the_rig_turns_the_exported_pooling(exported):
-    module, depths, proto, _ = exported
-    depth_prob, context, K, T = _inputs(depths, seed=2)
+def test_turning_the_rig_turns_the_exported_pooling(exported_sorted):
+    module, proto = exported_sorted
+    depth_prob, context, K, T = _inputs(DEPTHS, seed=2)
     turn = torch.eye(4)
     turn[:2, :2] = torch.tensor([[0.0, -1.0], [1.0, 0.0]])
-    _, fine = _run(proto, (depth_prob, context, K, T))
-    _, fine_turned = _run(proto, (depth_prob, context, K, turn @ T))
-    assert_rotated(torch.from_numpy(fine), torch.from_numpy(fine_turned))
+
+    def dense(rows, sums):
+        return fine_grid((torch.as_tensor(rows), torch.as_tensor(sums)), 1, 2)
+
+    fine = dense(*_run(proto, (depth_prob, context, K, T))[1:])
+    fine_turned = dense(*_run(proto, (depth_prob, context, K, turn @ T))[1:])
+    assert_rotated(fine, fine_turned)
     with torch.no_grad():
-        assert torch.allclose(module(depth_prob, context, K, turn @ T)[1], torch.from_numpy(fine_turned),
-                              atol=1e-5)
+        assert torch.allclose(dense(*module(depth_prob, context, K, turn @ T)[1:]), fine_turned, atol=1e-5)
+
+
+def test_exported_sorted_pooling_equals_the_index_add_sums(exported_sorted):
+    module, proto = exported_sorted
+    assert {(n.op_type, next((a.s.decode() for a in n.attribute if a.name == "reduction"), "none"))
+            for n in proto.graph.node if n.op_type.startswith("Scatter")} == {("ScatterND", "none")}
+    inputs = _inputs(DEPTHS, seed=1)
+    reference = PoolingStage(DEPTHS, stride=2, scatter_add=True)
+    with torch.no_grad():
+        trunk_i, fine_i = reference(*inputs)                       # index_add, in point order
+        trunk_t, rows_t, sums_t = module(*inputs)
+    trunk_o, rows_o, sums_o = _run(proto, inputs)
+    points = 6 * H * W * len(DEPTHS)                               # heavy repetition: many points per used voxel
+    assert points > 10 * (np.abs(trunk_o).sum(-1) > 0).sum() and points > 5 * len(rows_o)
+    assert np.array_equal(rows_o, rows_t.numpy())                  # exact: integer voxel rows
+    assert np.allclose(trunk_o, trunk_t.numpy(), rtol=1e-6, atol=1e-6)
+    assert np.allclose(sums_o, sums_t.numpy(), rtol=1e-6, atol=1e-6)
+    # the same sums as index_add up to float32 rounding of sums over other orders
+    dense = fine_grid((torch.from_numpy(rows_o), torch.from_numpy(sums_o)), 1, 2)
+    assert np.allclose(trunk_o, trunk_i.numpy(), rtol=1e-5, atol=1e-6)
+    assert torch.allclose(dense, fine_i, rtol=1e-5, atol=1e-6)
+
+
+def test_exported_sorted_pooling_gives_the_same_bits_on_every_run(exported_sorted):
+    _, proto = exported_sorted
+    inputs = _inputs(DEPTHS, seed=3)
+    first = _run(proto, inputs, threads=4)
+    for _ in range(4):
+        assert all(np.array_equal(a, b) for a, b in zip(_run(proto, inputs, threads=4), first))

@@ -141,7 +141,7 @@ class BlockedPrefix:
 
     def at(self, pos: torch.Tensor) -> torch.Tensor:
         """Inclusive prefix sums float64 [U, C] at positions int64 [U]."""
-        block = torch.div(pos, POOL_BLOCK, rounding_mode="floor")
+        block = pos // POOL_BLOCK              # integer ops in ONNX (a float floor division is lost in fp16)
         return (torch.index_select(self.offsets, 0, block) + block[:, None].to(torch.float64) * self.mean
                 + torch.index_select(self.local, 0, pos).to(torch.float64))
 
@@ -212,7 +212,7 @@ class LiftSplat(nn.Module):
         def lifted(features):                                                      # [B, V, h, w, C] → [K', C]
             return weight[:, None] * torch.index_select(features.reshape(-1, features.shape[-1]), 0, pixel)
 
-        ends = run_ends(torch.div(key, self.stride ** 3, rounding_mode="floor"))    # runs of trunk cells
+        ends = run_ends(key // self.stride ** 3)                                   # runs of trunk cells
         rows = torch.index_select(coarse_rows, 0, torch.index_select(order, 0, ends))
         trunk = torch.zeros((b * cx * cy * cz, context.shape[-1]), dtype=weight.dtype, device=weight.device)
         trunk = torch.index_put(trunk, (rows,), BlockedPrefix(lifted(context)).run_sums(ends))
