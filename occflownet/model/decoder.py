@@ -179,10 +179,12 @@ def block_rows(grid_rows: torch.Tensor, grid_shape: tuple[int, int, int], stride
     of the flattened block layout [B·Xc·Yc·Zc·s³] (:func:`unblock`'s input, sub-voxel (sx, sy, sz) last)."""
     x_n, y_n, z_n = grid_shape
     s = stride
+    # integer floor divisions (ONNX Div on int64); the exporter's float form of rounding_mode="floor" is rounded
+    # by the fp16 variant
     z = torch.remainder(grid_rows, z_n)
-    y = torch.remainder(torch.div(grid_rows, z_n, rounding_mode="floor"), y_n)
-    x = torch.remainder(torch.div(grid_rows, z_n * y_n, rounding_mode="floor"), x_n)
-    b = torch.div(grid_rows, x_n * y_n * z_n, rounding_mode="floor")
+    y = torch.remainder(grid_rows // z_n, y_n)
+    x = torch.remainder(grid_rows // (z_n * y_n), x_n)
+    b = grid_rows // (x_n * y_n * z_n)
     coarse = ((b * (x_n // s) + x // s) * (y_n // s) + y // s) * (z_n // s) + z // s
     return ((coarse * s + x % s) * s + y % s) * s + z % s
 
