@@ -10,6 +10,7 @@ module imports numpy (OpenCV when it decodes an image), never torch.
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,7 +82,7 @@ def load_frame(folder: str | Path, input_size: tuple[int, int] | None = None) ->
     ``input_size`` [H, W]: each JPEG at its own reduced scale (:func:`occflownet.contract.decode_reduction`; PNGs
     and, with ``input_size=None``, every image whole), then any image whose decoded size differs from the one most
     of them have resized to it (:func:`occflownet.contract.common_size`, :func:`~occflownet.contract.resize_rgb`),
-    as the server does. ValueError naming the file that cannot be decoded."""
+    as the server does; the six decode in parallel threads. ValueError naming the file that cannot be decoded."""
     blobs = [(p.read_bytes(), str(p)) for p in find_camera_images(folder).values()]
     headers = []
     for data, name in blobs:
@@ -93,12 +94,19 @@ def load_frame(folder: str | Path, input_size: tuple[int, int] | None = None) ->
     decoded = [reduced_size(hd.width, hd.height, n) for hd, n in zip(headers, reductions)]
     w, h = common_size(decoded)
     images = np.empty((len(blobs), h, w, 3), np.uint8)
-    for i, ((data, name), n, size) in enumerate(zip(blobs, reductions, decoded)):
+
+    def decode(i: int) -> None:                          # image i into images[i]
+        (data, name), n, size = blobs[i], reductions[i], decoded[i]
         rgb = decode_image(data, name, n)
         if (rgb.shape[1], rgb.shape[0]) != size:
             raise ValueError(f"{name}: decoded size {rgb.shape[1]}x{rgb.shape[0]} disagrees with its header's "
                              f"{headers[i].width}x{headers[i].height} at 1/{n}")
         resize_rgb(rgb, (w, h), out=images[i])
+
+    # one thread per image: the decoder (OpenCV) releases the GIL, so the images decode in parallel; the first
+    # failing image in camera order raises
+    with ThreadPoolExecutor(max_workers=len(blobs)) as pool:
+        list(pool.map(decode, range(len(blobs))))
     return Frame(images, tuple((hd.width, hd.height) for hd in headers), tuple(reductions))
 
 

@@ -111,6 +111,30 @@ def _write_folder(folder, width=64, height=48):
     return folder
 
 
+@needs_frame
+def test_load_frame_decodes_the_six_images_in_parallel(monkeypatch):
+    """Each decode waits at a barrier for all six: decoding one image after another breaks the barrier (a
+    BrokenBarrierError once its guard against hanging runs out). The images equal one-by-one decodes (exact: the
+    same decoder on the same bytes, at the same scale)."""
+    import threading
+
+    import occflownet.predict as predict
+    from occflownet.contract import decode_rgb
+
+    barrier = threading.Barrier(len(CAMERAS), timeout=60)
+    decode = predict.decode_image
+
+    def waiting(data, name, reduction):
+        barrier.wait()
+        return decode(data, name, reduction)
+
+    monkeypatch.setattr(predict, "decode_image", waiting)
+    frame = predict.load_frame(FRAME, (160, 288))
+    assert frame.images.shape == (6, 450, 800, 3) and frame.reductions == (2,) * 6
+    for i, cam in enumerate(CAMERAS):
+        assert np.array_equal(frame.images[i], decode_rgb((FRAME / f"{cam}.jpg").read_bytes(), 2))
+
+
 def test_bad_inputs_give_clear_errors(tmp_path, capsys):
     folder = _write_folder(tmp_path / "imgs")
     model = str(exported_tiny()[0])
