@@ -27,9 +27,10 @@ from occflownet.occ3d import FREE, NUM_CLASSES
 # models render rays that travel into the scene instead of stopping in the first voxels.
 SIGMA_PRIOR_LOGIT = -2.2
 # Bytes of one slab's widest per-voxel tensor in the inference chain (:meth:`VoxelDecoder.fused_occupancy`): the
-# projection, Φσ and their intermediates run on slabs of whole x-planes whose widest layer fits in a core's 2 MB
-# L2 cache (tiny: 2 planes of 12,800 voxels, Φσ's hidden layer 16 wide; base: 1 plane of 6,400 voxels, 64 wide),
-# instead of 640,000-row tensors written to memory and read back between layers (docs/model.md, *Inference graph*).
+# projection, Φσ and their intermediates run on slabs of whole x-planes whose widest layer takes at most this many
+# bytes, near a core's L2 cache (tiny: 5 planes of 12,800 voxels, Φσ's hidden layer 16 wide; base: 2 planes of
+# 6,400 voxels, 64 wide),
+# instead of 640,000-row tensors written to memory and read back between layers (docs/results.md#inference).
 SLAB_BYTES = 4 * 1024 * 1024
 
 
@@ -63,7 +64,7 @@ def conv_z(x: torch.Tensor, weights: list[torch.Tensor], bias: torch.Tensor) -> 
     """A Conv3d on z-major grids: x [B, Z, C, X, Y] → [B, Z, O, X, Y], out[z] = bias + sum over dz of
     conv2d(x[z + dz − r], weights[dz]) (r = len(weights) // 2, zero outside 0 .. Z − 1; 2-D padding k // 2).
     Each 2-D convolution runs on the B·Z planes as a batch — the same FLOPs as the Conv3d, in the runtimes' fast
-    2-D kernels (onnxruntime's Conv3d on base's [1, 32, 100, 100, 8] takes 1.7x as long; docs/model.md)."""
+    2-D kernels, which onnxruntime runs faster than its Conv3d (docs/results.md#inference)."""
     b, z, c, h, w = x.shape
     r = len(weights) // 2
     out = None

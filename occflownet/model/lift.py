@@ -190,7 +190,7 @@ class LiftSplat(nn.Module):
 
     def _pool_sorted(self, depth_prob, context, fine, points):
         """Eval mode (the exported path): the training path's sums over the points inside the grid (about half of
-        the frustum on the real frame: tiny 47 %, base 54 %), as sorted segment sums: the points sorted by voxel
+        the frustum on the real frame, docs/results.md#inference), as sorted segment sums: the points sorted by voxel
         (block-layout row; ``topk`` ascending → ONNX ``TopK``, whose ties keep their index order), their
         lifted context and fine features summed cumulatively (:class:`BlockedPrefix`), and each voxel's sum the
         difference of that sum across its run of points; the trunk's cells are runs of the same order. Nothing is
