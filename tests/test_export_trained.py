@@ -1,11 +1,10 @@
 """Export of a *trained* tiny checkpoint (occupied voxels, so differences show): parity passes on every export and
 every run gives the same bits.
 
-The failure this guards against (issue 14, part 1): onnxruntime's CPU ScatterND with ``reduction="add"`` splits the
-updates over its intra-op threads and adds without synchronisation, so voxels hit from two threads at once lost
-updates at random (trained tiny: 10 of 25 runs failed parity at 4 threads, 2 of 25 at 2 threads, density off by up
-to 5e-2). The export rewrites pooling as ScatterElements (``export.onnx_export.deterministic_scatter_add``), which
-onnxruntime runs in index order like torch's ``index_add``.
+Exported pooling sums each voxel's points by sorted segment sums and writes each row once (ScatterND without a
+reduction): onnxruntime's CPU ScatterND with ``reduction="add"`` splits the updates over its intra-op threads and
+adds without synchronisation, so a graph with it loses updates at random at several threads; repeated exports and
+runs at four threads must give the same bits.
 """
 import numpy as np
 import onnx
@@ -37,7 +36,7 @@ def test_trained_export_passes_parity_with_occupied_voxels(trained):
 
 def test_repeated_exports_of_a_trained_checkpoint_all_pass(trained, tmp_path, monkeypatch):
     """Five exports (tracing reused: it is deterministic and takes most of an export's time), each with the parity
-    check on the default random samples (the issue's failures were there; the real frame is checked by the
+    check on the default random samples (where lost updates showed; the real frame is checked by the
     fixture's own export and the four-thread test); all must pass."""
     path, _, model = trained
     proto = onnx.load(str(path))
