@@ -14,7 +14,8 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
 - ``today, whole images``: the same graph on the six images decoded whole (the graph-only gain);
 - ``baseline`` (``--baseline FILE``, an ONNX file of the same preset and weights, or ``--baseline-commit REV``:
   that commit is checked out in a ``git worktree`` and its own exporter writes the same weights, saved as a
-  checkpoint by this script) fed whole images, as its code decoded them;
+  checkpoint by this script) fed whole images (the graph-only ratio against ``today, whole images``) and fed
+  as today's paths decode (the ratio a user sees against ``today``, for a baseline that decodes at reduced scale);
 - with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations; 7-bit
   weights, and with ``int8-full`` 8-bit weights for CPUs with VNNI/AMX) and fp16 graphs, with their agreement with
   fp32 (the first row); ``--openvino`` adds today's fp32 and int8 graphs run by OpenVINO CPU (f32 precision hint),
@@ -25,7 +26,7 @@ costliest nodes; for OpenVINO's rows its own per-layer counters, by layer type a
 comes from; for a quantised graph also the float kernel time left outside its int8 kernels and the speed-up over
 the first graph that this allows at most (as if every int8 kernel took no time). A 2048³ fp32 matmul (torch) is
 measured at the start and the end of the run as the machine's reference; ``--torch`` also times torch eager
-(``model.inference``). JPEG decoding of the six files (whole for the baseline, at reduced scale for today) is timed
+(``model.inference``). JPEG decoding of the six files (whole or at reduced scale, as each row is fed) is timed
 with each inference in the same loop ("with decoding": the end-to-end figure of predict, the server and the C++
 runner).
 """
@@ -279,7 +280,8 @@ def build_graphs(name: str, args, model, whole, reduced, workdir: Path) -> list[
             ckpt = workdir / f"{name}.pt"
             save_checkpoint(ckpt, model, model.cfg)
             export_baseline_commit(args.baseline_commit, ckpt, base, workdir)
-        graphs.append((f"baseline {args.baseline_commit or base.name}, whole images", base, whole))
+        label = f"baseline {args.baseline_commit or base.name}"
+        graphs += [(f"{label}, whole images", base, whole), (f"{label}, as today's paths decode", base, reduced)]
     wanted = [] if args.variants is None else (args.variants or ["int8", "fp16"])
     for variant, int8_range in (("int8", "reduced"), ("int8-full", "full")):
         if variant in wanted:
