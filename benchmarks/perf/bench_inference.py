@@ -46,7 +46,6 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
 FRAME = ROOT.parent / "shared" / "data" / "nuscenes-frame"
 SPINNING = False  # onnxruntime worker threads busy-wait (--ort-spinning) or sleep (default, as in predict/serve)
 
