@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <cstring>
 #include <fstream>
+#include <future>
 #include <iterator>
 #include <sys/stat.h>
 
@@ -211,6 +212,18 @@ void write_npy(const std::string& path, const std::string& dtype, const std::vec
     out.write(magic, 8).write(len_le, 2).write(header.data(), std::streamsize(header.size()));
     out.write(static_cast<const char*>(data), std::streamsize(nbytes));
     if (!out) fail(Error::kIO, "error writing " + path);
+}
+
+void decode_all_into(const std::vector<EncodedImage>& images, std::uint8_t* dst, std::size_t frame_bytes,
+                     int reduction) {
+    std::vector<std::future<void>> jobs;
+    jobs.reserve(images.size());
+    for (std::size_t c = 0; c < images.size(); ++c)
+        jobs.push_back(std::async(std::launch::async, [&images, dst, frame_bytes, reduction, c] {
+            decode_into(images[c], dst + c * frame_bytes, reduction);
+        }));
+    for (auto& job : jobs) job.wait();   // every thread done before an error leaves this frame
+    for (auto& job : jobs) job.get();    // rethrows the first camera's error
 }
 
 }  // namespace occflownet::io

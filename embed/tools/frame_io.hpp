@@ -34,6 +34,12 @@ EncodedImage probe_image(const std::string& path);   // reads the file; Error if
 // IMREAD_REDUCED_COLOR_n: dst is then uint8 [ceil(height / n), ceil(width / n), 3].
 void decode_into(const EncodedImage& image, std::uint8_t* dst, int reduction = 1);
 
+// Decodes images[c] into dst + c * frame_bytes (as decode_into, each at `reduction`), every image in its own thread
+// (libjpeg and libpng keep their state per call); all threads are joined, then the first camera's error, in camera
+// order, is thrown.
+void decode_all_into(const std::vector<EncodedImage>& images, std::uint8_t* dst, std::size_t frame_bytes,
+                     int reduction = 1);
+
 // The scale 1/n a JPEG is decoded at for a model whose network input is input_size [H, W]: the contract's rule
 // (occflownet/contract/images.py, decode_reduction): the largest of 1, 2, 4, 8 not above the graph's decimation
 // step for the stored size (crop_window); always 1 for a PNG.

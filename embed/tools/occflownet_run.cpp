@@ -134,9 +134,7 @@ int run(const Args& a) {
     const std::size_t frame = std::size_t(W) * H * 3;
     std::vector<std::uint8_t> pixels(frame * occflownet::kCameras), occupancy(info.grid.voxels());
     std::vector<float> density(info.grid.voxels());
-    auto decode_all = [&] {
-        for (std::size_t c = 0; c < images.size(); ++c) occflownet::io::decode_into(images[c], pixels.data() + c * frame, n);
-    };
+    auto decode_all = [&] { occflownet::io::decode_all_into(images, pixels.data(), frame, n); };
 
     std::vector<double> total, infer;
     double first_ms = 0;
