@@ -1,4 +1,4 @@
-"""The same grid on every runtime (issue 14, part 3): onnxruntime, OpenVINO CPU at f32 inference precision and
+"""The same grid on every runtime: onnxruntime, OpenVINO CPU at f32 inference precision and
 ``onnx.reference`` run the exported *trained* tiny on the real frame and must agree — occupancy ≥ 99.99 % equal on
 the voxels whose σ is not within 1e-3 of τ, density within 1e-4.
 

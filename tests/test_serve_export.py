@@ -114,7 +114,7 @@ def _serve_folder(client, folder: Path, calib: bytes) -> np.ndarray:
 
 @pytest.mark.skipif(not FRAME_DIR.is_dir(), reason=f"shared real frame not found at {FRAME_DIR}")
 def test_predict_and_http_give_identical_grids_for_the_frame_and_its_half_size_copy(tmp_path):
-    """One calibration rule everywhere (issue 14, part 2): the real frame at 1600x900 (JPEGs decoded at half scale)
+    """One calibration rule everywhere: the real frame at 1600x900 (JPEGs decoded at half scale)
     and resized to 800x450 (PNG, decoded whole; calib.json still says 1600x900), through `occflownet predict
     --model` and through POST /v1/occupancy, gives identical grids; both fed the pixel-centre-rescaled
     intrinsics."""
