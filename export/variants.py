@@ -110,9 +110,9 @@ def activation_matmuls(proto: onnx.ModelProto) -> list[str]:
 
 def voxel_convs(proto: onnx.ModelProto) -> list[str]:
     """Names of the Conv nodes downstream of the voxel pooling (the ``ScatterND`` that writes the pooled sums into
-    the trunk grid, or a ``ScatterElements`` that adds them): the 3D decoder's convolutions. Kept in float32 by the int8 variant: quantised, they
-    changed the predicted occupancy of 29 % of the voxels of a trained base on the real frame (density error
-    0.68), against 0.06 % with them in float32 (docs/results.md#inference)."""
+    the trunk grid, or a ``ScatterElements`` that adds them): the 3D decoder's convolutions. Kept in float32 by the
+    int8 variant: quantised, they changed the predicted occupancy of 29 % of the voxels of a trained base on the
+    real frame (density error 0.68), against 0.06 % with them in float32 (docs/results.md#inference)."""
     consumers: dict[str, list] = {}
     for n in proto.graph.node:
         for i in n.input:
