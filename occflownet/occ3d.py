@@ -37,8 +37,14 @@ class Grid:
         (computed in float64); a torch tensor in → an int64 tensor on its device, computed in the tensor's own dtype
         (the exported model's float32 arithmetic), without this module importing torch."""
         if hasattr(points, "new_tensor"):  # a torch.Tensor
-            return ((points - points.new_tensor(self.lower)) / self.voxel_size).floor().long()
+            return self.cells_of(points).long()
         return np.floor((np.asarray(points) - np.asarray(self.lower)) / self.voxel_size).astype(np.int64)
+
+    def cells_of(self, points):
+        """:meth:`index_of`'s rule for a torch tensor of ego-frame points [..., 3], before the conversion to
+        integers: floor((p − lower) / voxel_size) in the tensor's own float dtype (a non-finite point stays
+        non-finite, so range checks on it fail instead of wrapping around)."""
+        return ((points - points.new_tensor(self.lower)) / self.voxel_size).floor()
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """Boolean [...]: whether ego-frame points [..., 3] lie inside the grid's range."""

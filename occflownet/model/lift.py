@@ -103,10 +103,10 @@ def voxel_rows(points: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.T
 
 def points_inside(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Ego points [B, ..., 3] → (keep int64 [K]: the flat indices of the points inside the grid, ascending;
-    index int64 [K, 3]: their voxels). The voxel is ``GRID.index_of``'s (floor in the points' float32), and a
+    index int64 [K, 3]: their voxels). The voxel is ``GRID.index_of``'s (``GRID.cells_of``, in float32), and a
     point is inside when all three lie in [0, shape): the points :func:`voxel_rows` calls valid (a non-finite
     point fails the comparisons). Only the kept points are turned into integers."""
-    cell = torch.floor((points - points.new_tensor(GRID.lower)) / GRID.voxel_size)  # [B, ..., 3] float
+    cell = GRID.cells_of(points)                                                   # [B, ..., 3] float
     inside = torch.all((cell >= 0) & (cell < cell.new_tensor(GRID.shape)), dim=-1)
     keep = torch.nonzero(inside.reshape(-1)).reshape(-1)                           # [K]
     return keep, torch.index_select(cell.reshape(-1, 3), 0, keep).to(torch.int64)
