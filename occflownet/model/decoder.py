@@ -328,5 +328,6 @@ def skip_table(fine_points: tuple[torch.Tensor, torch.Tensor], bias: torch.Tenso
     count = rows.shape[0]
     sub_bias = bias.reshape(s3, -1)                                                # [s³, Ch]
     table = torch.cat([sums + torch.index_select(sub_bias, 0, torch.remainder(rows, s3)), sub_bias])
-    index = torch.remainder(torch.arange(voxels, device=rows.device), s3) + count
+    # row mod s³ of every voxel, as s³ numbers repeated (an Expand: no per-voxel integer division in the graph)
+    index = (torch.arange(s3, device=rows.device) + count).expand(voxels // s3, s3).reshape(-1)
     return torch.index_put(index, (rows,), torch.arange(count, device=rows.device)), table
