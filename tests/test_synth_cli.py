@@ -23,6 +23,22 @@ def test_synth_command_writes_dataset_and_previews(tmp_path, capsys):
     assert (out / "v1.0-mini" / "scene.json").is_file()
 
 
+def test_val_frames_sets_the_val_scene_keyframes(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "w"
+    assert main(["synth", "--out", str(out), "--scenes", "3", "--frames", "1", "--val-frames", "2", "--seed", "1",
+                 "--width", "96", "--height", "54", "--margin", "50", "--no-progress"]) == 0
+    assert "wrote 4 keyframes in 3 scene(s)" in capsys.readouterr().out
+    tables = out / "v1.0-trainval"
+    scenes = json.loads((tables / "scene.json").read_text())
+    assert [s["nbr_samples"] for s in scenes] == [1, 1, 2]
+    splits = json.loads((tables / "splits.json").read_text())
+    assert splits == {"train": [scenes[0]["name"], scenes[1]["name"]], "val": [scenes[2]["name"]]}
+    assert len(json.loads((tables / "sample.json").read_text())) == 4
+    assert len(list((out / "gts").glob("*/*/labels.npz"))) == 4
+
+
 def test_synth_command_rejects_bad_options(tmp_path, capsys):
     import pytest
 

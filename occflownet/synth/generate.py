@@ -48,6 +48,8 @@ class SynthConfig:
 
     scenes: int = option(1, "number of scenes (the last is val if >= 2)", minimum=1)
     frames: int = option(6, "keyframes per scene, 2 Hz", minimum=1)
+    val_frames: int = option(0, "keyframes of the val scene (the last, with 2 or more scenes); 0: --frames",
+                             minimum=0)
     seed: int = option(0, "random seed; same seed, same files")
     width: int = option(480, "image width in pixels (0.3 x nuScenes)", minimum=16)
     height: int = option(270, "image height in pixels", minimum=16)
@@ -95,23 +97,27 @@ def _clear(root: Path, version: str, overwrite: bool) -> None:
 def generate(out, settings: SynthConfig = SynthConfig(), *, config: WorldConfig = WorldConfig(),
              rig: SensorRig | None = None, progress: bool = True, labels: LabelConfig = LabelConfig(),
              **changes) -> SynthResult:
-    """Generate ``settings.scenes`` scenes of ``settings.frames`` keyframes each under ``out`` (``settings.sweeps``
-    LiDAR sweeps between consecutive keyframes), laid out by ``config``, then label it with ``labels``
+    """Generate ``settings.scenes`` scenes of ``settings.frames`` keyframes each (the val scene, the last,
+    ``settings.val_frames`` when set) under ``out`` (``settings.sweeps`` LiDAR sweeps between consecutive
+    keyframes), laid out by ``config``, then label it with ``labels``
     (``occflownet.labels.label_root``). ``changes``: fields of :class:`SynthConfig` that replace those of
     ``settings`` (``generate(out, scenes=2, seed=3)``). Deterministic for the seed."""
     import cv2
     from tqdm import tqdm
 
     job = replace(settings, **changes)          # checks the values (SynthConfig.__post_init__)
-    scenes, frames, seed, version, sweeps = job.scenes, job.frames, job.seed, job.version, job.sweeps
+    scenes, seed, version, sweeps = job.scenes, job.seed, job.version, job.sweeps
+    counts = [job.frames] * scenes                  # keyframes per scene
+    if scenes >= 2 and job.val_frames:
+        counts[-1] = job.val_frames
     start = time.perf_counter()
     root = Path(out)
     _clear(root, version, job.overwrite)
     rig = rig or SensorRig.default(job.width, job.height)
     tables = Tables(seed)
-    bar = tqdm(total=scenes * frames, desc="synth keyframes", unit="kf", file=sys.stderr, disable=not progress)
+    bar = tqdm(total=sum(counts), desc="synth keyframes", unit="kf", file=sys.stderr, disable=not progress)
     scene_names, log_tokens, first_world = [], [], None
-    for s in range(scenes):
+    for s, frames in enumerate(counts):
         world = build_world(config, seed, s, frames)
         first_world = first_world or world
         log_tokens.append(_write_scene(root, version, tables, rig, world, seed, s, frames, sweeps, bar, cv2))
@@ -126,7 +132,7 @@ def generate(out, settings: SynthConfig = SynthConfig(), *, config: WorldConfig 
     label_root(root, labels, version=version, progress=progress)
     if job.preview:
         _write_previews(root, version, cv2)
-    return SynthResult(root, version, scene_names, scenes * frames, time.perf_counter() - start)
+    return SynthResult(root, version, scene_names, sum(counts), time.perf_counter() - start)
 
 
 def _write_scene(root, version, tables, rig, world, seed, s, frames, sweeps, bar, cv2) -> str:
