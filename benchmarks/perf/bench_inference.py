@@ -10,12 +10,13 @@ voxels is occupied — Φs only runs on those —, or the trained ``--checkpoint
 so machine load hits all alike, and is reported as p50 and as a ratio to the first row:
 
 - ``today``: today's graph fed as ``predict``, the server and the C++ runner feed it (the JPEGs decoded at
-  reduced scale, ``occflownet.contract.decode_reduction``);
+  reduced scale, ``occflownet.contract.decode_reduction``, in parallel threads: ``predict.load_frame``);
 - ``today, whole images``: the same graph on the six images decoded whole (the graph-only gain);
 - ``baseline`` (``--baseline FILE``, an ONNX file of the same preset and weights, or ``--baseline-commit REV``:
   that commit is checked out in a ``git worktree`` and its own exporter writes the same weights, saved as a
   checkpoint by this script) fed whole images (the graph-only ratio against ``today, whole images``) and fed
-  as today's paths decode (the ratio a user sees against ``today``, for a baseline that decodes at reduced scale);
+  at reduced scale, the six decoded one after another as a sequential ``predict`` does (the ratio a user sees
+  against ``today``, for a baseline that decodes at reduced scale but not in parallel);
 - with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations; 7-bit
   weights, and with ``int8-full`` 8-bit weights for CPUs with VNNI/AMX) and fp16 graphs, with their agreement with
   fp32 (the first row); ``--openvino`` adds today's fp32 and int8 graphs run by OpenVINO CPU (f32 precision hint),
@@ -68,10 +69,12 @@ sys.exit(main(["export", "--checkpoint", ckpt, "--out", out]))
 
 
 def bench_inputs(input_size):
-    """(whole, reduced, source): whole = (ModelInputs of the six images decoded whole, decode), reduced = (the same as
-    the inference paths decode them, at reduced scale, decode); both built by the one feeds function
-    (``occflownet.runtime.frame_inputs`` through ``predict.Frame.inputs``). ``decode()`` decodes the six JPEGs (held
-    in memory) as that path does, → uint8 [6, H, W, 3], for the end-to-end timings."""
+    """(whole, reduced, one_by_one, source): whole = (ModelInputs of the six images decoded whole, decode), reduced =
+    (the same as the inference paths decode them, at reduced scale, decode), one_by_one = reduced with the six
+    decoded one after another; all built by the one feeds function (``occflownet.runtime.frame_inputs`` through
+    ``predict.Frame.inputs``). ``decode()`` → uint8 [6, H, W, 3], for the end-to-end timings: ``reduced``'s is
+    ``predict.load_frame`` (the files read and decoded in parallel threads, as the inference paths do), the others
+    decode the JPEGs held in memory in turn."""
     from occflownet.contract import decode_reduction, image_header, load_calibration
     from occflownet.predict import decode_image, find_camera_images, load_frame
     from occflownet.rig import default_rig
@@ -80,7 +83,7 @@ def bench_inputs(input_size):
     if not (FRAME / "calib.json").is_file():
         images = np.random.default_rng(0).integers(0, 256, (6, 900, 1600, 3), dtype=np.uint8)
         same = (frame_inputs(images, default_rig(1600, 900)), lambda: images)
-        return same, same, "random images (no real frame)"
+        return same, same, same, "random images (no real frame)"
     calib = load_calibration(FRAME / "calib.json")
     blobs = [p.read_bytes() for p in find_camera_images(FRAME).values()]
     decoded = []
@@ -88,7 +91,9 @@ def bench_inputs(input_size):
         frame = load_frame(FRAME, size)
         n = decode_reduction(image_header(blobs[0]), size)
         decoded.append((frame.inputs(calib), lambda n=n: np.stack([decode_image(b, "image", n) for b in blobs])))
-    return decoded[0], decoded[1], "real nuScenes frame"
+    whole, one_by_one = decoded
+    reduced = (one_by_one[0], lambda: load_frame(FRAME, input_size).images)
+    return whole, reduced, one_by_one, "real nuScenes frame"
 
 
 def matmul_gflops(n: int = 2048, reps: int = 5) -> float:
@@ -262,7 +267,7 @@ def interleaved(graphs: list[tuple[str, object, tuple]], runs: int) -> tuple[dic
     return infer, total
 
 
-def build_graphs(name: str, args, model, whole, reduced, workdir: Path) -> list[tuple[str, Path, tuple]]:
+def build_graphs(name: str, args, model, whole, reduced, one_by_one, workdir: Path) -> list[tuple[str, Path, tuple]]:
     """Export today's graph (and the requested baseline and variants) → [(label, path, inputs)]: the graphs to
     time, each with the inputs its own code would feed it (the first is today's, the reference of the ratios)."""
     from occflownet.export.onnx_export import export_model
@@ -280,7 +285,7 @@ def build_graphs(name: str, args, model, whole, reduced, workdir: Path) -> list[
             save_checkpoint(ckpt, model, model.cfg)
             export_baseline_commit(args.baseline_commit, ckpt, base, workdir)
         label = f"baseline {args.baseline_commit or base.name}"
-        graphs += [(f"{label}, whole images", base, whole), (f"{label}, as today's paths decode", base, reduced)]
+        graphs += [(f"{label}, whole images", base, whole), (f"{label}, reduced scale one by one", base, one_by_one)]
     wanted = [] if args.variants is None else (args.variants or ["int8", "fp16"])
     for variant, int8_range in (("int8", "reduced"), ("int8-full", "full")):
         if variant in wanted:
@@ -296,14 +301,14 @@ def build_graphs(name: str, args, model, whole, reduced, workdir: Path) -> list[
     return graphs
 
 
-def bench_preset(name: str, args, whole, reduced, workdir: Path, threads: int) -> None:
+def bench_preset(name: str, args, whole, reduced, one_by_one, workdir: Path, threads: int) -> None:
     from occflownet.contract import create_session
     from occflownet.export.onnx_export import agreement
     from occflownet.runtime import OnnxPredictor, TorchPredictor
 
     model = bench_model(name, args.occupied, args.checkpoint, reduced[0])
     t = time.perf_counter()
-    graphs = build_graphs(name, args, model, whole, reduced, workdir)
+    graphs = build_graphs(name, args, model, whole, reduced, one_by_one, workdir)
     print(f"{name}: exported in {time.perf_counter() - t:.0f} s; {len(graphs)} graphs, {args.runs} interleaved runs",
           flush=True)
     if args.openvino:
@@ -380,10 +385,10 @@ def main(argv=None) -> int:
         for name in args.presets:
             from occflownet.model import get_preset
 
-            whole, reduced, source = bench_inputs(get_preset(name).input_size)
+            whole, reduced, one_by_one, source = bench_inputs(get_preset(name).input_size)
             (w, h), (rw, rh) = whole[0].image_size, reduced[0].image_size
             print(f"{name}: inputs {source}: whole 6x{w}x{h}, as today's paths decode them 6x{rw}x{rh}")
-            bench_preset(name, args, whole, reduced, Path(tmp), args.threads)
+            bench_preset(name, args, whole, reduced, one_by_one, Path(tmp), args.threads)
     print(f"fp32 matmul 2048^3 (torch): {matmul_gflops():.1f} GFLOP/s at end; load average "
           f"{os.getloadavg()[0]:.2f}")
     return 0
