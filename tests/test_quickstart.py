@@ -13,8 +13,8 @@ from occflownet.train.recipe import TrainConfig
 
 def test_quickstart_small(tmp_path, capsys):
     out = tmp_path / "qs"
-    assert main(["quickstart", "--out", str(out), "--scenes", "2", "--frames", "3", "--train-minutes", "0.05",
-                 "--max-steps", "2"]) == 0
+    assert main(["quickstart", "--out", str(out), "--scenes", "2", "--frames", "2", "--val-frames", "3",
+                 "--train-minutes", "0.05", "--max-steps", "2"]) == 0
     captured = capsys.readouterr()
     printed = captured.out
     assert "quickstart finished" in printed and "occflownet serve --model" in printed
@@ -52,11 +52,14 @@ def test_the_estimate_scales_with_the_machine_and_caps_training_at_its_budget():
 
     costs = StageCosts(matmul_gflops=100.0, synth_per_keyframe=2.0, prepare_per_keyframe=0.5, train_setup=6.0,
                        eval_per_keyframe=1.0, export=12.0)
-    cfg = QuickstartConfig(scenes=3, frames=10, train_minutes=7.0, max_steps=1000, recipe="quickstart-3d")
+    cfg = QuickstartConfig(scenes=3, frames=10, val_frames=0, train_minutes=7.0, max_steps=1000,
+                           recipe="quickstart-3d")
     same = estimate_minutes(cfg, 100.0, costs)
     step = RECIPES["quickstart-3d"].step_seconds                   # a step costs its recipe's measured seconds
     assert same == pytest.approx({"synth": 1.0, "prepare": 0.25, "train": (6.0 + 1000 * step) / 60,
                                   "eval": 10 / 60, "export": 0.2})
+    short = estimate_minutes(dataclasses.replace(cfg, val_frames=4), 100.0, costs)   # 2 x 10 + 4 keyframes
+    assert short["synth"] == pytest.approx(24 * 2.0 / 60) and short["eval"] == pytest.approx(4 * 1.0 / 60)
     rendering = estimate_minutes(dataclasses.replace(cfg, recipe="quickstart", max_steps=100), 100.0, costs)
     assert rendering["train"] == pytest.approx((6.0 + 100 * RECIPES["quickstart"].step_seconds) / 60)
     slower = estimate_minutes(dataclasses.replace(cfg, max_steps=3000), 50.0, costs)   # half the matmul rate ...

@@ -4,15 +4,15 @@ figures ``Recipe.step_seconds`` of ``occflownet/train/recipes.py`` holds (and ``
     python -m benchmarks.perf.recipe_steps [--recipes recommended,quickstart,...] [--steps 24] [--skip 8]
         [--rounds 1] [--world W] [--jsonl PATH]
 
-The world is the quickstart's (``occflownet synth --scenes 6 --frames 8 --seed 0``, then ``occflownet prepare``;
-made in ``--world`` when it holds none, by default in a temporary folder). Each recipe (default: all of them) runs
-the real ``occflownet train --recipe NAME --preset tiny`` on the world's split ``train`` (the quickstart's) for
-``--steps`` steps on the CPU (``--device cpu``): float32 (``--precision fp32``), 2 torch and numba threads
-(``OMP_NUM_THREADS``, ``NUMBA_NUM_THREADS``), the data workers ``occflownet train`` defaults to, a log record every
-step. A step's seconds are the median of the intervals between consecutive log records after the first ``--skip``
-steps (which compile numba kernels, start the workers and fill their caches: several times slower); with ``--rounds`` > 1 the recipes run in turn round after
-round, the order reversed every other round (``benchmarks.harness.interleaved``), and the median over the rounds
-is taken.
+The world is the quickstart's (``occflownet synth --scenes 12 --frames 4 --val-frames 8 --seed 0``, then
+``occflownet prepare``; made in ``--world`` when it holds none, by default in a temporary folder). Each recipe
+(default: all of them) runs the real ``occflownet train --recipe NAME --preset tiny`` on the world's split ``train``
+(the quickstart's) for ``--steps`` steps on the CPU (``--device cpu``): float32 (``--precision fp32``), 2 torch and
+numba threads (``OMP_NUM_THREADS``, ``NUMBA_NUM_THREADS``), the data workers ``occflownet train`` defaults to, a log
+record every step. A step's seconds are the median of the intervals between consecutive log records after the first
+``--skip`` steps (which compile numba kernels, start the workers and fill their caches: several times slower); with
+``--rounds`` > 1 the recipes run in turn round after round, the order reversed every other round
+(``benchmarks.harness.interleaved``), and the median over the rounds is taken.
 
 Prints a markdown table, one row per recipe as it finishes: seconds per step here, this machine's float32 matmul
 rate (1024³, 2 threads) measured right after it, the same seconds scaled to the reference machine
@@ -41,7 +41,8 @@ def make_world(world: Path) -> None:
     cfg = QuickstartConfig()
     if not (world / "gts" / "labels.json").is_file():
         subprocess.run([sys.executable, "-m", "occflownet", "synth", "--out", str(world), "--scenes", str(cfg.scenes),
-                        "--frames", str(cfg.frames), "--seed", str(cfg.seed), "--no-progress", "--overwrite"],
+                        "--frames", str(cfg.frames), "--val-frames", str(cfg.val_frames), "--seed", str(cfg.seed),
+                        "--no-progress", "--overwrite"],
                        check=True)
     if not (world / "occflownet").is_dir():
         subprocess.run([sys.executable, "-m", "occflownet", "prepare", "--dataroot", str(world), "--quiet"], check=True)
