@@ -85,7 +85,8 @@ _RECIPES = (
            "(quickstart seeds 0 / 1 / 2, 1,160 steps)", _QUICKSTART,
            step_seconds=0.357),
     Recipe("quickstart-3d", "3D labels inside mask_camera only: the cheapest step", "Occ3D labels in mask_camera",
-           {**_ROW1, "voxel_mask": True}, "12.5 / 15.3 % val mIoU (quickstart seeds 0 / 1), cars 6 / 5 %",
+           {**_ROW1, "voxel_mask": True}, "12.5 / 15.3 % val mIoU (the former 6 x 8 quickstart world, "
+           "seeds 0 / 1), cars 6 / 5 %",
            _QUICKSTART, step_seconds=0.129),
     Recipe("paper-3d", "row 1 of the paper's ablation: Occ3D voxel labels on every voxel (official use_mask=False)",
            "Occ3D labels, every voxel", _ROW1, "45.8 / 42.9 % mIoU (1 × 8 world, 2,000 steps, seeds 0 / 1); 31.5 % "
