@@ -305,8 +305,8 @@ class VoxelDecoder(nn.Module):
             addend = None if skip is None else torch.index_select(
                 skip[1], 0, skip[0].reshape(b, xc, per)[:, x0:x0 + n].reshape(-1))  # [B·n·per, Ch]
             x = self.head_input(rows[:, x0:x0 + n].reshape(-1, rows.shape[-1]), addend)
-            sigma = torch.sigmoid(self.sigma_head(x)).reshape(b, n, yc, zc, s, s, s)
-            density.append(sigma.permute(0, 1, 4, 2, 5, 3, 6).reshape(b, n * s, yc * s, zc * s))
+            sigma = torch.sigmoid(self.sigma_head(x)).reshape(b, n, yc, zc, s ** 3)     # block layout
+            density.append(unblock(sigma, s))                                      # [B, n·s, Y, Z]
             inputs.append(x.reshape(b, n, per, -1))
         density = torch.cat(density, 1)                                            # [B, X, Y, Z]
         occupied = torch.nonzero(density.reshape(-1) >= threshold).reshape(-1)     # grid rows
