@@ -250,3 +250,69 @@ def test_the_dataset_warps_images_with_their_intrinsics_and_leaves_other_draws_a
     again = augmented[(3, 2)]
     assert torch.equal(again["images"], b["images"]) and torch.equal(again["intrinsics"], b["intrinsics"])
     assert not torch.equal(augmented[(3, 3)]["intrinsics"], b["intrinsics"])
+
+
+def _photometric(brightness=0.0, contrast=1.0, saturation=1.0):
+    from occflownet.train.augment import Photometric
+
+    return Photometric(np.array([brightness], float), np.array([contrast], float), np.array([saturation], float))
+
+
+def _pixels(*rgb) -> dict:
+    """An item of one camera whose image is the pixels ``rgb`` in a row: uint8 [1, 1, N, 3]."""
+    return {"images": torch.tensor([[list(rgb)]], dtype=torch.uint8), "intrinsics": torch.eye(3)[None]}
+
+
+def test_photometric_parts_give_their_known_answers():
+    item = _pixels((100, 50, 200), (10, 250, 0))
+    # exact: integer-valued floats, scaled by integers or 1, and rounded
+    assert torch.equal(_photometric().apply(item)["images"], item["images"])
+    assert _photometric(brightness=10).apply(item)["images"].tolist() == [[[[110, 60, 210], [20, 255, 10]]]]
+    assert _photometric(brightness=-32).apply(item)["images"].tolist() == [[[[68, 18, 168], [0, 218, 0]]]]
+    assert _photometric(contrast=2).apply(item)["images"].tolist() == [[[[200, 100, 255], [20, 255, 0]]]]
+    grey = _photometric(saturation=0).apply(item)["images"][0, 0]
+    expected = [round(0.299 * r + 0.587 * g + 0.114 * b) for r, g, b in ((100, 50, 200), (10, 250, 0))]
+    assert grey[:, 0].tolist() == expected and torch.equal(grey[:, 0:1].expand(-1, 3), grey)
+    # saturation 2 moves each channel twice its distance from the grey (82.05 for the first pixel), clipped
+    assert _photometric(saturation=2).apply(item)["images"][0, 0, 0].tolist() == [118, 18, 255]
+    assert torch.equal(_photometric(brightness=5).apply(item)["intrinsics"], item["intrinsics"])
+
+
+def test_photometric_draws_fill_their_ranges_half_of_the_time():
+    from occflownet.train.augment import BRIGHTNESS_DELTA, CONTRAST_RANGE, SATURATION_RANGE, Photometric
+
+    rng = np.random.default_rng(0)
+    jitter = Photometric.draw(rng, 2000)
+    for values, idle, (low, high) in ((jitter.brightness, 0.0, (-BRIGHTNESS_DELTA, BRIGHTNESS_DELTA)),
+                                      (jitter.contrast, 1.0, CONTRAST_RANGE),
+                                      (jitter.saturation, 1.0, SATURATION_RANGE)):
+        on = values != idle
+        assert 0.45 < on.mean() < 0.55
+        margin = 0.01 * (high - low)
+        assert low <= values[on].min() < low + margin and high - margin < values[on].max() <= high
+    # six draws per camera whatever is applied, so the generator's later draws do not depend on the outcome
+    rng_a, rng_b = np.random.default_rng(1), np.random.default_rng(1)
+    Photometric.draw(rng_a, 6)
+    rng_b.random((6, 6))
+    assert rng_a.random() == rng_b.random()
+    with pytest.raises(ValueError, match="2 draws for 1 images"):
+        Photometric.draw(rng, 2).apply(_pixels((1, 2, 3)))
+
+
+def test_the_dataset_jitters_images_only(prepared_synth_root):
+    from occflownet.data.index import load_index
+
+    root, _ = prepared_synth_root
+    index = load_index(root)
+
+    def items(photometric):
+        config = TrainConfig(dataroot=str(root), supervision="2d+3d", rays_per_step=3000,
+                             photometric_aug=photometric)
+        return TrainingSamples(root, index, index.split_positions("all"), config)
+
+    a, b = items(False)[(3, 2)], items(True)[(3, 2)]
+    # exact: the jitter changes the images only; the rest is the same computation
+    for key in ("ray_depths", "ray_labels", "ray_directions", "cam2ego", "intrinsics", "depth_points", "occ_semantics"):
+        assert torch.equal(a[key], b[key]), key
+    assert b["images"].dtype == torch.uint8 and b["images"].shape == a["images"].shape
+    assert not torch.equal(a["images"], b["images"])

@@ -52,7 +52,9 @@ FRAMES = 8
 # Levers: TrainConfig overrides added to a base recipe, named in a variant as BASE+LEVER[+LEVER...].
 LEVERS: dict[str, dict] = {
     "bev-flip": {"bev_flip": True},
+    "bev-rotate": {"bev_rotate": True},
     "image-aug": {"image_aug": True},
+    "photometric": {"photometric_aug": True},
     "cosine": {"lr_schedule": "cosine"},
     "wd0.05": {"weight_decay": 0.05},
     "rays2048": {"rays_per_step": 2048},

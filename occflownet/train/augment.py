@@ -6,7 +6,9 @@
   flips, any of the eight symmetries of the square grid; both move voxels onto voxels, so nothing is resampled);
 - :class:`ImageAug`, the official recipe's image augmentation (``data_config``: resize jitter, horizontal crop
   position, horizontal flip, rotation, drawn per camera): each image is warped by an affine map of its pixel
-  coordinates and its intrinsics follow, so the scene's geometry is unchanged.
+  coordinates and its intrinsics follow, so the scene's geometry is unchanged;
+- :class:`Photometric` (beyond the paper): each image's brightness, contrast and saturation jittered, drawn per
+  camera, its geometry untouched.
 
 BEV flip. The images and intrinsics stay as they are; the mirror acts on the 3D side, as BEVDet's BEV data
 augmentation does (its matrix multiplies the lifted frustum points): ``cam2ego`` becomes ``F · cam2ego`` (F = diag(sx,
@@ -51,6 +53,13 @@ STACKED_GRID_FIELDS = ("free_masks",)             # [T, X, Y, Z]
 SCALE_RANGE = (1.0 - 0.06 / 0.88, 1.0 + 0.11 / 0.88)  # official resize jitter (-0.06, 0.11) over its base 0.88
 ROTATION_DEG = 5.4                                  # official rot (-5.4, 5.4)
 IMAGE_FLIP_RATIO = 0.5                              # official flip: True (np.random.choice([0, 1]))
+# Photometric jitter, each part applied with probability PHOTOMETRIC_RATIO: the ranges of mmdet's
+# PhotoMetricDistortion defaults (BEVFormer's multi-view pipeline), without its hue jitter and channel swap.
+BRIGHTNESS_DELTA = 32.0                             # added to every channel, in [-32, 32] (uint8 levels)
+CONTRAST_RANGE = (0.5, 1.5)                         # every channel multiplied by a factor in this range
+SATURATION_RANGE = (0.5, 1.5)                       # a colour's distance from its grey × a factor in it
+PHOTOMETRIC_RATIO = 0.5
+GREY_WEIGHTS = (0.299, 0.587, 0.114)                # ITU-R BT.601 luma of RGB
 
 
 @dataclass(frozen=True)
@@ -217,3 +226,47 @@ def warp_images(images: torch.Tensor, inverse_maps: np.ndarray) -> torch.Tensor:
     warped = torch.nn.functional.grid_sample(images.permute(0, 3, 1, 2).to(torch.float32), grid, mode="bilinear",
                                              padding_mode="zeros", align_corners=False)
     return warped.round_().clamp_(0, 255).to(torch.uint8).permute(0, 2, 3, 1).contiguous()
+
+
+@dataclass(frozen=True)
+class Photometric:
+    """Per-camera photometric jitter: ``brightness`` (added, uint8 levels), ``contrast`` and ``saturation`` (factors),
+    each float64 [V]; 0, 1 and 1 leave an image as it is."""
+
+    brightness: np.ndarray
+    contrast: np.ndarray
+    saturation: np.ndarray
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, cameras: int) -> "Photometric":
+        """Jitter for ``cameras`` images from ``rng`` (six draws per camera, always: whether and how much of each
+        part); each part is applied with probability :data:`PHOTOMETRIC_RATIO`, uniform in its range."""
+        u = rng.random((cameras, 6))
+        on = u[:, :3] < PHOTOMETRIC_RATIO
+
+        def uniform(bounds, x):
+            return bounds[0] + x * (bounds[1] - bounds[0])
+
+        return cls(np.where(on[:, 0], uniform((-BRIGHTNESS_DELTA, BRIGHTNESS_DELTA), u[:, 3]), 0.0),
+                   np.where(on[:, 1], uniform(CONTRAST_RANGE, u[:, 4]), 1.0),
+                   np.where(on[:, 2], uniform(SATURATION_RANGE, u[:, 5]), 1.0))
+
+    def apply(self, item: dict) -> dict:
+        """A copy of the training ``item`` with ``images`` (uint8 [V, H, W, 3], RGB) jittered: x + brightness, then
+        × contrast, then grey + saturation · (x - grey) with grey the BT.601 luma, each result clipped to [0, 255],
+        rounded to uint8 at the end. Nothing else changes."""
+        images = item["images"]
+        v = images.shape[0]
+        if self.brightness.shape != (v,):
+            raise ValueError(f"Photometric has {self.brightness.shape[0]} draws for {v} images")
+
+        def per_camera(values):
+            return torch.from_numpy(np.asarray(values, np.float32)).view(v, 1, 1, 1)
+
+        x = (images.to(torch.float32) + per_camera(self.brightness)).clamp_(0, 255)
+        x = (x * per_camera(self.contrast)).clamp_(0, 255)
+        grey = (x * torch.tensor(GREY_WEIGHTS, dtype=torch.float32)).sum(dim=-1, keepdim=True)
+        x = (grey + per_camera(self.saturation) * (x - grey)).clamp_(0, 255)
+        out = dict(item)
+        out["images"] = x.round_().to(torch.uint8)
+        return out

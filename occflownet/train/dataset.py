@@ -7,7 +7,8 @@ uninterrupted one would, whatever worker process builds it.
 Frames: everything is in the *current ego frame* of the keyframe (ego pose at its LiDAR timestamp, the frame of
 the Occ3D ground truth). The model's ``cam2ego`` input is camera → current ego through each camera's own ego pose.
 With ``bev_flip`` that frame is mirrored in x and/or y at random, with ``bev_rotate`` turned by a multiple of 90°
-about z, every geometric field with it (:mod:`occflownet.train.augment`); with ``image_aug`` each image is warped and its intrinsics with it.
+about z, every geometric field with it (:mod:`occflownet.train.augment`); with ``image_aug`` each image is warped
+and its intrinsics with it; with ``photometric_aug`` its brightness, contrast and saturation are jittered.
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ from occflownet.data.free_space import FreeSpaceConfig
 from occflownet.data.rays import RayBuilder, RayConfig, sample_rays
 from occflownet.geometry import invert, transform_points
 from occflownet.occ3d import GRID
-from occflownet.train.augment import BevFlip, BevRotation, ImageAug
+from occflownet.train.augment import BevFlip, BevRotation, ImageAug, Photometric
 from occflownet.train.losses import loss_terms, step_data, voxel_targets
 from occflownet.train.recipe import TrainConfig
 
@@ -115,6 +116,8 @@ class TrainingSamples(Dataset):
         if self.cfg.image_aug:                      # after the flip, for the same reason
             images = item["images"]
             item = ImageAug.draw(rng, images.shape[1], images.shape[2], images.shape[0]).apply(item)
+        if self.cfg.photometric_aug:                # after the warp, for the same reason
+            item = Photometric.draw(rng, item["images"].shape[0]).apply(item)
         if "voxel_labels" in self.data:
             item.update(voxel_targets(item["occ_semantics"], item["occ_mask"] if self.cfg.voxel_mask else None))
         return item

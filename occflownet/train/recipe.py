@@ -139,6 +139,8 @@ class TrainConfig:
     image_aug: bool = option(False, "warp each training image by a random resize, sideways shift, horizontal flip and "
                                     "rotation, its intrinsics with it (the official recipe's image augmentation; "
                                     "occflownet/train/augment.py)", group=EXPERIMENTAL)
+    photometric_aug: bool = option(False, "jitter each training image's brightness, contrast and saturation, per "
+                                          "camera (beyond the paper; occflownet/train/augment.py)", group=EXPERIMENTAL)
     head_init: str = option("", "σ/semantic head init: prior (σ ≈ 0.1 at the start) or official (Xavier, zero "
                                 "bias); empty: the preset's", choices=HEAD_INIT_CHOICES, group=EXPERIMENTAL)
     lr_schedule: str = option("constant", "after the warm-up: constant (official) or a cosine decay to 0 at "
