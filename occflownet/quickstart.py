@@ -34,11 +34,11 @@ class QuickstartConfig:
     (``occflownet/options.py``)."""
 
     out: str = option("quickstart", "folder for the world, the run, the model and the pictures")
-    scenes: int = option(12, "synthetic scenes (the last one is the val split); more, shorter scenes generalise "
-                                  "better than few long ones at the same cost (docs/results.md#the-quickstart)",
-                         minimum=2)
+    scenes: int = option(12, "synthetic scenes, the val split's included; more, shorter scenes generalise better "
+                                  "than few long ones at the same cost (docs/results.md#the-quickstart)", minimum=2)
     frames: int = option(4, "keyframes per training scene", minimum=1)
-    val_frames: int = option(8, "keyframes of the val scene (0: --frames)", minimum=0)
+    val_scenes: int = option(1, "scenes of the val split (the last ones); fewer than --scenes", minimum=1)
+    val_frames: int = option(8, "keyframes of each val scene (0: --frames)", minimum=0)
     preset: str = option("tiny", "model preset; small (tiny with a denser lifting) takes 2.1x as long a step, so it "
                                  "needs a longer --train-minutes (docs/results.md#the-quickstart)", choices=PRESET_NAMES)
     recipe: str = option("quickstart", "training recipe (`occflownet recipes`): quickstart = 3D labels inside the "
@@ -51,6 +51,9 @@ class QuickstartConfig:
 
     def __post_init__(self):
         check_fields(self)
+        if self.val_scenes >= self.scenes:
+            raise ValueError(f"val_scenes ({self.val_scenes}) must be fewer than scenes ({self.scenes}): the "
+                             f"quickstart trains on the others")
 
 
 @dataclass(frozen=True)
@@ -90,8 +93,8 @@ def estimate_minutes(cfg: QuickstartConfig, gflops: float, costs: StageCosts = S
     measured). A rough guide (±30 % on machines like the reference, more on others), printed so that a user knows
     what to expect; nothing depends on it."""
     scale = costs.matmul_gflops / max(gflops, 1e-3)
-    val = cfg.val_frames or cfg.frames                        # the last scene is the val split
-    keyframes = (cfg.scenes - 1) * cfg.frames + val
+    val = cfg.val_scenes * (cfg.val_frames or cfg.frames)    # the last scenes are the val split
+    keyframes = (cfg.scenes - cfg.val_scenes) * cfg.frames + val
     per_step = recipe(cfg.recipe).step_seconds
     steps = float("inf") if per_step is None else costs.train_setup + cfg.max_steps * per_step * scale
     seconds = {"synth": keyframes * costs.synth_per_keyframe * scale,
@@ -170,7 +173,8 @@ def _synth(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
     from occflownet.synth.generate import generate
 
     argv = ["synth", "--out", str(paths.world), "--scenes", str(cfg.scenes), "--frames", str(cfg.frames),
-            "--val-frames", str(cfg.val_frames), "--seed", str(cfg.seed), "--preview"]
+            "--val-scenes", str(cfg.val_scenes), "--val-frames", str(cfg.val_frames), "--seed", str(cfg.seed),
+            "--preview"]
     if (paths.world / "gts" / "labels.json").is_file():
         announce(argv, "   (the world exists: reused)")
         return
@@ -178,8 +182,8 @@ def _synth(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
     announce(argv + (["--overwrite"] if made_before else []),
              "   (a world without pipeline labels, from an older version: written again)" if made_before else
              "   (then labelled as `occflownet labels --dataroot` it would be)")
-    generate(paths.world, scenes=cfg.scenes, frames=cfg.frames, val_frames=cfg.val_frames, seed=cfg.seed,
-             preview=True, overwrite=made_before)
+    generate(paths.world, scenes=cfg.scenes, frames=cfg.frames, val_scenes=cfg.val_scenes, val_frames=cfg.val_frames,
+             seed=cfg.seed, preview=True, overwrite=made_before)
 
 
 def _prepare(cfg: QuickstartConfig, paths: QuickstartPaths, announce):

@@ -60,8 +60,17 @@ def test_the_estimate_scales_with_the_machine_and_caps_training_at_its_budget():
                                   "eval": 10 / 60, "export": 0.2})
     short = estimate_minutes(dataclasses.replace(cfg, val_frames=4), 100.0, costs)   # 2 x 10 + 4 keyframes
     assert short["synth"] == pytest.approx(24 * 2.0 / 60) and short["eval"] == pytest.approx(4 * 1.0 / 60)
+    several = estimate_minutes(dataclasses.replace(cfg, val_scenes=2, val_frames=4), 100.0, costs)  # 10 + 2 x 4
+    assert several["synth"] == pytest.approx(18 * 2.0 / 60) and several["eval"] == pytest.approx(8 * 1.0 / 60)
     rendering = estimate_minutes(dataclasses.replace(cfg, recipe="quickstart", max_steps=100), 100.0, costs)
     assert rendering["train"] == pytest.approx((6.0 + 100 * RECIPES["quickstart"].step_seconds) / 60)
     slower = estimate_minutes(dataclasses.replace(cfg, max_steps=3000), 50.0, costs)   # half the matmul rate ...
     assert slower["synth"] == pytest.approx(2.0) and slower["export"] == pytest.approx(0.4)
     assert slower["train"] == pytest.approx(7.0)                  # ... but training stops at its time budget
+
+
+def test_quickstart_refuses_a_world_without_training_scenes(tmp_path, capsys):
+    out = tmp_path / "qs"
+    assert main(["quickstart", "--out", str(out), "--scenes", "3", "--val-scenes", "3"]) == 2
+    assert "val_scenes (3) must be fewer than scenes (3)" in capsys.readouterr().err
+    assert not out.exists()

@@ -39,6 +39,28 @@ def test_val_frames_sets_the_val_scene_keyframes(tmp_path, capsys):
     assert len(list((out / "gts").glob("*/*/labels.npz"))) == 4
 
 
+def test_val_scenes_makes_the_last_scenes_the_val_split(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "w"
+    assert main(["synth", "--out", str(out), "--scenes", "4", "--frames", "2", "--val-scenes", "2", "--val-frames",
+                 "1", "--seed", "1", "--width", "96", "--height", "54", "--margin", "50", "--no-progress"]) == 0
+    assert "wrote 6 keyframes in 4 scene(s)" in capsys.readouterr().out
+    tables = out / "v1.0-trainval"
+    names = [s["name"] for s in json.loads((tables / "scene.json").read_text())]
+    assert [s["nbr_samples"] for s in json.loads((tables / "scene.json").read_text())] == [2, 2, 1, 1]
+    assert json.loads((tables / "splits.json").read_text()) == {"train": names[:2], "val": names[2:]}
+    # no more scenes than --val-scenes: every scene in both splits, each with --frames keyframes
+    out = tmp_path / "v"
+    assert main(["synth", "--out", str(out), "--scenes", "2", "--frames", "1", "--val-scenes", "2", "--val-frames",
+                 "3", "--seed", "1", "--width", "96", "--height", "54", "--margin", "50", "--no-progress"]) == 0
+    tables = out / "v1.0-trainval"
+    scenes = json.loads((tables / "scene.json").read_text())
+    assert [s["nbr_samples"] for s in scenes] == [1, 1]
+    names = [s["name"] for s in scenes]
+    assert json.loads((tables / "splits.json").read_text()) == {"train": names, "val": names}
+
+
 def test_synth_command_rejects_bad_options(tmp_path, capsys):
     import pytest
 

@@ -4,7 +4,7 @@ figures ``Recipe.step_seconds`` of ``occflownet/train/recipes.py`` holds (and ``
     python -m benchmarks.perf.recipe_steps [--recipes recommended,quickstart,...] [--steps 24] [--skip 8]
         [--rounds 1] [--world W] [--jsonl PATH]
 
-The world is the quickstart's (``occflownet synth --scenes 12 --frames 4 --val-frames 8 --seed 0``, then
+The world is the quickstart's (``occflownet synth`` with QuickstartConfig's scenes, frames and seed, then
 ``occflownet prepare``; made in ``--world`` when it holds none, by default in a temporary folder). Each recipe
 (default: all of them) runs the real ``occflownet train --recipe NAME --preset tiny`` on the world's split ``train``
 (the quickstart's) for ``--steps`` steps on the CPU (``--device cpu``): float32 (``--precision fp32``), 2 torch and
@@ -41,8 +41,8 @@ def make_world(world: Path) -> None:
     cfg = QuickstartConfig()
     if not (world / "gts" / "labels.json").is_file():
         subprocess.run([sys.executable, "-m", "occflownet", "synth", "--out", str(world), "--scenes", str(cfg.scenes),
-                        "--frames", str(cfg.frames), "--val-frames", str(cfg.val_frames), "--seed", str(cfg.seed),
-                        "--no-progress", "--overwrite"],
+                        "--frames", str(cfg.frames), "--val-scenes", str(cfg.val_scenes), "--val-frames",
+                        str(cfg.val_frames), "--seed", str(cfg.seed), "--no-progress", "--overwrite"],
                        check=True)
     if not (world / "occflownet").is_dir():
         subprocess.run([sys.executable, "-m", "occflownet", "prepare", "--dataroot", str(world), "--quiet"], check=True)

@@ -24,7 +24,11 @@ def run(args) -> int:
     from occflownet.quickstart import run_quickstart
     from occflownet.train.loop import TrainingError
 
-    cfg = QuickstartConfig(**config_kwargs(args, QuickstartConfig))
+    try:
+        cfg = QuickstartConfig(**config_kwargs(args, QuickstartConfig))
+    except ValueError as e:                             # values the parser cannot check alone
+        print(f"occflownet quickstart: {e}", file=sys.stderr)
+        return 2
     try:
         done = run_quickstart(cfg)
     except (DatasetError, TrainingError, ExportError, FileNotFoundError, FileExistsError, ValueError, OSError) as e:

@@ -46,10 +46,11 @@ class SynthConfig:
     how many scenes and keyframes, images and sweeps, and how it treats a folder that holds a dataset.
     `occflownet synth` derives its options from these fields (``occflownet/options.py``)."""
 
-    scenes: int = option(1, "number of scenes (the last is val if >= 2)", minimum=1)
+    scenes: int = option(1, "number of scenes, the val split's included", minimum=1)
     frames: int = option(6, "keyframes per scene, 2 Hz", minimum=1)
-    val_frames: int = option(0, "keyframes of the val scene (the last, with 2 or more scenes); 0: --frames",
-                             minimum=0)
+    val_scenes: int = option(1, "scenes of the val split: the last ones (with no more scenes than this, every "
+                                "scene is in both splits)", minimum=1)
+    val_frames: int = option(0, "keyframes of each val scene; 0: --frames", minimum=0)
     seed: int = option(0, "random seed; same seed, same files")
     width: int = option(480, "image width in pixels (0.3 x nuScenes)", minimum=16)
     height: int = option(270, "image height in pixels", minimum=16)
@@ -97,8 +98,8 @@ def _clear(root: Path, version: str, overwrite: bool) -> None:
 def generate(out, settings: SynthConfig = SynthConfig(), *, config: WorldConfig = WorldConfig(),
              rig: SensorRig | None = None, progress: bool = True, labels: LabelConfig = LabelConfig(),
              **changes) -> SynthResult:
-    """Generate ``settings.scenes`` scenes of ``settings.frames`` keyframes each (the val scene, the last,
-    ``settings.val_frames`` when set) under ``out`` (``settings.sweeps`` LiDAR sweeps between consecutive
+    """Generate ``settings.scenes`` scenes of ``settings.frames`` keyframes each (the val scenes, the last
+    ``settings.val_scenes``, ``settings.val_frames`` when set) under ``out`` (``settings.sweeps`` LiDAR sweeps between consecutive
     keyframes), laid out by ``config``, then label it with ``labels``
     (``occflownet.labels.label_root``). ``changes``: fields of :class:`SynthConfig` that replace those of
     ``settings`` (``generate(out, scenes=2, seed=3)``). Deterministic for the seed."""
@@ -107,9 +108,8 @@ def generate(out, settings: SynthConfig = SynthConfig(), *, config: WorldConfig 
 
     job = replace(settings, **changes)          # checks the values (SynthConfig.__post_init__)
     scenes, seed, version, sweeps = job.scenes, job.seed, job.version, job.sweeps
-    counts = [job.frames] * scenes                  # keyframes per scene
-    if scenes >= 2 and job.val_frames:
-        counts[-1] = job.val_frames
+    val = job.val_scenes if scenes > job.val_scenes else 0    # the last scenes are val; none: all in both splits
+    counts = [job.frames] * (scenes - val) + [job.val_frames or job.frames] * val   # keyframes per scene
     start = time.perf_counter()
     root = Path(out)
     _clear(root, version, job.overwrite)
@@ -125,7 +125,7 @@ def generate(out, settings: SynthConfig = SynthConfig(), *, config: WorldConfig 
     bar.close()
     _write_map(root, tables, seed, first_world, log_tokens, cv2)
     tables.write(root / version)
-    splits = {"train": scene_names[:-1], "val": scene_names[-1:]} if scenes >= 2 else \
+    splits = {"train": scene_names[:-val], "val": scene_names[-val:]} if val else \
         {"train": scene_names, "val": scene_names}
     with open(root / version / "splits.json", "w") as f:
         json.dump(splits, f, indent=1)
