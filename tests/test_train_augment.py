@@ -278,9 +278,16 @@ def test_photometric_parts_give_their_known_answers():
     assert torch.equal(_photometric(brightness=5).apply(item)["intrinsics"], item["intrinsics"])
 
 
-def test_photometric_draws_fill_their_ranges_half_of_the_time():
-    from occflownet.train.augment import BRIGHTNESS_DELTA, CONTRAST_RANGE, SATURATION_RANGE, Photometric
+# mmdet's PhotoMetricDistortion defaults (BEVFormer's PhotoMetricDistortionMultiViewImage takes the same):
+# brightness_delta=32, contrast_range=(0.5, 1.5), saturation_range=(0.5, 1.5), each step with probability 0.5.
+MMDET_PHOTOMETRIC = (32, (0.5, 1.5), (0.5, 1.5), 0.5)
 
+
+def test_photometric_draws_fill_their_ranges_half_of_the_time():
+    from occflownet.train.augment import (BRIGHTNESS_DELTA, CONTRAST_RANGE, PHOTOMETRIC_RATIO, SATURATION_RANGE,
+                                          Photometric)
+
+    assert (BRIGHTNESS_DELTA, CONTRAST_RANGE, SATURATION_RANGE, PHOTOMETRIC_RATIO) == MMDET_PHOTOMETRIC
     rng = np.random.default_rng(0)
     jitter = Photometric.draw(rng, 2000)
     for values, idle, (low, high) in ((jitter.brightness, 0.0, (-BRIGHTNESS_DELTA, BRIGHTNESS_DELTA)),
