@@ -99,8 +99,8 @@ def generate(out, settings: SynthConfig = SynthConfig(), *, config: WorldConfig 
              rig: SensorRig | None = None, progress: bool = True, labels: LabelConfig = LabelConfig(),
              **changes) -> SynthResult:
     """Generate ``settings.scenes`` scenes of ``settings.frames`` keyframes each (the val scenes, the last
-    ``settings.val_scenes``, ``settings.val_frames`` when set) under ``out`` (``settings.sweeps`` LiDAR sweeps between consecutive
-    keyframes), laid out by ``config``, then label it with ``labels``
+    ``settings.val_scenes``, ``settings.val_frames`` when set) under ``out`` (``settings.sweeps`` LiDAR sweeps
+    between consecutive keyframes), laid out by ``config``, then label it with ``labels``
     (``occflownet.labels.label_root``). ``changes``: fields of :class:`SynthConfig` that replace those of
     ``settings`` (``generate(out, scenes=2, seed=3)``). Deterministic for the seed."""
     import cv2
