@@ -47,8 +47,9 @@ def test_val_scenes_makes_the_last_scenes_the_val_split(tmp_path, capsys):
                  "1", "--seed", "1", "--width", "96", "--height", "54", "--margin", "50", "--no-progress"]) == 0
     assert "wrote 6 keyframes in 4 scene(s)" in capsys.readouterr().out
     tables = out / "v1.0-trainval"
-    names = [s["name"] for s in json.loads((tables / "scene.json").read_text())]
-    assert [s["nbr_samples"] for s in json.loads((tables / "scene.json").read_text())] == [2, 2, 1, 1]
+    scenes = json.loads((tables / "scene.json").read_text())
+    names = [s["name"] for s in scenes]
+    assert [s["nbr_samples"] for s in scenes] == [2, 2, 1, 1]
     assert json.loads((tables / "splits.json").read_text()) == {"train": names[:2], "val": names[2:]}
     # no more scenes than --val-scenes: every scene in both splits, each with --frames keyframes
     out = tmp_path / "v"
