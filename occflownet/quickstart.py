@@ -14,7 +14,7 @@ import shutil
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -169,21 +169,37 @@ def _estimate_line(cfg: QuickstartConfig) -> str:
             f"(training stops at {cfg.max_steps} steps or after {cfg.train_minutes:g} min)")
 
 
+def synth_settings(cfg: QuickstartConfig, **changes):
+    """The quickstart's world as :class:`~occflownet.synth.generate.SynthConfig` (its scenes, keyframes, val split
+    and seed, with preview pictures), ``changes`` replacing fields: what ``generate`` is given and, through
+    :func:`synth_argv`, what the announced ``occflownet synth`` says."""
+    from occflownet.synth.generate import SynthConfig
+
+    world = SynthConfig(scenes=cfg.scenes, frames=cfg.frames, val_scenes=cfg.val_scenes, val_frames=cfg.val_frames,
+                        seed=cfg.seed, preview=True)
+    return replace(world, **changes)
+
+
+def synth_argv(world: Path, settings) -> list[str]:
+    """The ``occflownet synth`` arguments that write ``settings`` (a ``SynthConfig``) into ``world``."""
+    from occflownet.synth.generate import SynthConfig
+
+    always = ("scenes", "frames", "val_scenes", "val_frames", "seed")
+    return ["synth", "--out", str(world), *config_argv(settings, SynthConfig(), always=always)]
+
+
 def _synth(cfg: QuickstartConfig, paths: QuickstartPaths, announce) -> None:
     from occflownet.synth.generate import generate
 
-    argv = ["synth", "--out", str(paths.world), "--scenes", str(cfg.scenes), "--frames", str(cfg.frames),
-            "--val-scenes", str(cfg.val_scenes), "--val-frames", str(cfg.val_frames), "--seed", str(cfg.seed),
-            "--preview"]
     if (paths.world / "gts" / "labels.json").is_file():
-        announce(argv, "   (the world exists: reused)")
+        announce(synth_argv(paths.world, synth_settings(cfg)), "   (the world exists: reused)")
         return
     made_before = (paths.world / "v1.0-trainval" / "sample.json").is_file()
-    announce(argv + (["--overwrite"] if made_before else []),
+    settings = synth_settings(cfg, overwrite=made_before)
+    announce(synth_argv(paths.world, settings),
              "   (a world without pipeline labels, from an older version: written again)" if made_before else
              "   (then labelled as `occflownet labels --dataroot` it would be)")
-    generate(paths.world, scenes=cfg.scenes, frames=cfg.frames, val_scenes=cfg.val_scenes, val_frames=cfg.val_frames,
-             seed=cfg.seed, preview=True, overwrite=made_before)
+    generate(paths.world, settings)
 
 
 def _prepare(cfg: QuickstartConfig, paths: QuickstartPaths, announce):

@@ -8,6 +8,9 @@ import pytest
 
 from occflownet.cli import build_parser, main
 from occflownet.commands.train import config_from_args
+from occflownet.options import config_kwargs
+from occflownet.quickstart import QuickstartConfig, synth_settings
+from occflownet.synth.generate import SynthConfig
 from occflownet.train.recipe import TrainConfig
 
 
@@ -26,6 +29,12 @@ def test_quickstart_small(tmp_path, capsys):
     announced = next(line for line in captured.err.splitlines() if line.startswith("[3/5] occflownet train "))
     again = config_from_args(build_parser().parse_args(shlex.split(announced.split(" ", 2)[2])))
     assert again == TrainConfig.from_dict(json.loads((out / "run" / "train_config.json").read_text()))
+    # the announced synth command writes the world it wrote: parsed again, the settings it gave generate
+    announced = next(line for line in captured.err.splitlines() if line.startswith("[1/5] occflownet synth "))
+    words = shlex.split(announced.split(" ", 2)[2])
+    given = SynthConfig(**config_kwargs(build_parser().parse_args(words[:words.index("(then")]), SynthConfig))
+    assert given == synth_settings(QuickstartConfig(scenes=2, frames=2, val_frames=3))
+    assert (given.scenes, given.frames, given.val_scenes, given.val_frames, given.preview) == (2, 2, 1, 3, True)
     result = json.loads((out / "eval.json").read_text())
     assert result["split"] == "val" and result["samples"] == 3
     assert (out / "model.onnx").is_file() and (out / "run" / "checkpoints" / "last.pt").is_file()
@@ -47,7 +56,7 @@ def test_quickstart_small(tmp_path, capsys):
 
 
 def test_the_estimate_scales_with_the_machine_and_caps_training_at_its_budget():
-    from occflownet.quickstart import QuickstartConfig, StageCosts, estimate_minutes
+    from occflownet.quickstart import StageCosts, estimate_minutes
     from occflownet.train.recipes import RECIPES
 
     costs = StageCosts(matmul_gflops=100.0, synth_per_keyframe=2.0, prepare_per_keyframe=0.5, train_setup=6.0,

@@ -36,14 +36,11 @@ THREADS = 2
 
 def make_world(world: Path) -> None:
     """The quickstart's world (its scenes, frames and seed) in ``world``, prepared; kept when it is there."""
-    from occflownet.quickstart import QuickstartConfig
+    from occflownet.quickstart import QuickstartConfig, synth_argv, synth_settings
 
-    cfg = QuickstartConfig()
     if not (world / "gts" / "labels.json").is_file():
-        subprocess.run([sys.executable, "-m", "occflownet", "synth", "--out", str(world), "--scenes", str(cfg.scenes),
-                        "--frames", str(cfg.frames), "--val-scenes", str(cfg.val_scenes), "--val-frames",
-                        str(cfg.val_frames), "--seed", str(cfg.seed), "--no-progress", "--overwrite"],
-                       check=True)
+        settings = synth_settings(QuickstartConfig(), preview=False, overwrite=True)
+        subprocess.run([sys.executable, "-m", "occflownet", *synth_argv(world, settings), "--no-progress"], check=True)
     if not (world / "occflownet").is_dir():
         subprocess.run([sys.executable, "-m", "occflownet", "prepare", "--dataroot", str(world), "--quiet"], check=True)
 
