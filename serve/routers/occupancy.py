@@ -21,7 +21,7 @@ from fastapi import APIRouter, Request
 from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response
 
-from occflownet.contract import CalibrationError
+from occflownet.contract import MAX_CALIBRATION_BYTES, CalibrationError
 from occflownet.occ3d import CAMERAS
 from occflownet.runtime import FrameCalibration
 from occflownet.serve.decode import ImageError, check_header, decode_image, decode_reduction
@@ -33,7 +33,7 @@ from occflownet.serve.limits import InferenceGate, Saturated
 from occflownet.serve.metrics import Metrics
 from occflownet.serve.model_runtime import ModelRuntime
 from occflownet.serve.schemas import OccupancyJSON, error_doc
-from occflownet.serve.settings import DEFAULT_MAX_BODY_BYTES, MAX_CALIBRATION_BYTES
+from occflownet.serve.settings import DEFAULT_MAX_BODY_BYTES
 
 router = APIRouter()
 
