@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,9 @@ from occflownet.files import atomic_path
 from occflownet.options import check_fields, config_argv, option
 from occflownet.train.recipe import TrainConfig
 from occflownet.train.recipes import RECIPE_NAMES, REFERENCE_GFLOPS, recipe
+
+if TYPE_CHECKING:
+    from occflownet.synth.generate import SynthConfig
 
 
 @dataclass(frozen=True)
@@ -169,7 +173,7 @@ def _estimate_line(cfg: QuickstartConfig) -> str:
             f"(training stops at {cfg.max_steps} steps or after {cfg.train_minutes:g} min)")
 
 
-def synth_settings(cfg: QuickstartConfig, **changes):
+def synth_settings(cfg: QuickstartConfig, **changes) -> SynthConfig:
     """The quickstart's world as :class:`~occflownet.synth.generate.SynthConfig` (its scenes, keyframes, val split
     and seed, with preview pictures), ``changes`` replacing fields: what ``generate`` is given and, through
     :func:`synth_argv`, what the announced ``occflownet synth`` says."""
@@ -180,8 +184,8 @@ def synth_settings(cfg: QuickstartConfig, **changes):
     return replace(world, **changes)
 
 
-def synth_argv(world: Path, settings) -> list[str]:
-    """The ``occflownet synth`` arguments that write ``settings`` (a ``SynthConfig``) into ``world``."""
+def synth_argv(world: Path, settings: SynthConfig) -> list[str]:
+    """The ``occflownet synth`` arguments that write ``settings`` into ``world``."""
     from occflownet.synth.generate import SynthConfig
 
     always = ("scenes", "frames", "val_scenes", "val_frames", "seed")
