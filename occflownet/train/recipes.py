@@ -6,8 +6,8 @@ A recipe's ``settings`` are the :class:`~occflownet.train.recipe.TrainConfig` va
 defaults, which are the paper's *Base* setting as the official code trains it (so ``paper`` sets nothing). The
 recipes of the paper's ablation ladder carry their row (``ladder_row``; ``benchmarks/`` picks rows by it). What each
 recipe scored, and on which protocol, is ``measured``, with the page of docs/ that holds the table (``source``);
-``step_seconds`` is the cost of one ``tiny`` step (float32, 2 threads, 4,096 rays) on the reference machine, whose
-float32 matmul rate is :data:`REFERENCE_GFLOPS`, measured by ``benchmarks/perf/recipe_steps.py``
+``step_seconds`` is the cost of one ``tiny`` step (float32, 2 threads, the recipe's own rays a step) on the reference
+machine, whose float32 matmul rate is :data:`REFERENCE_GFLOPS`, measured by ``benchmarks/perf/recipe_steps.py``
 (docs/results.md#training-speed).
 
 Also here: the optimisation values each model preset defaults to (:data:`PRESET_SCHEDULES`), which a recipe leaves
