@@ -1,17 +1,20 @@
 """The benchmarks' shared parts with known answers: the order in which the harness runs two sides, its JSON lines,
-the options that give a recipe to a tree with or without the recipe registry, and the studies' run selection
-(recipes by name, ladder rows, the recommended rendering added)."""
+the options that give a recipe to a tree with or without the recipe registry, the studies' run selection
+(recipes by name, ladder rows, the recommended rendering added) and the near-miss IoU of ``near_misses``."""
 import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))                     # the benchmarks package, when pytest runs from elsewhere
 
 from benchmarks import harness  # noqa: E402
-from benchmarks.studies import ablation  # noqa: E402
+from benchmarks.studies import ablation, near_misses  # noqa: E402
+from occflownet.eval.metrics import iou_from_confusion  # noqa: E402
+from occflownet.occ3d import FREE  # noqa: E402
 from occflownet.cli import build_parser  # noqa: E402
 from occflownet.commands.train import config_from_args  # noqa: E402
 from occflownet.train.recipe import TrainConfig  # noqa: E402
@@ -101,3 +104,33 @@ def test_records_of_ladder_rows_read_as_their_recipes():
     assert ablation.record_key({"row": 1, "steps": 800}) == ("recipe", "paper-3d", 0, 800)
     assert ablation.record_key({"recipe": "recommended", "variant": "x", "seed": 2, "steps": 9}) == \
         ("x", "recommended", 2, 9)
+
+
+def test_a_voxel_placed_one_beside_its_label_is_a_miss_at_radius_0_and_a_hit_at_radius_1():
+    label = np.full((8, 8, 4), FREE, np.uint8)
+    pred = label.copy()
+    label[3, 3, 1] = 4                                   # a car voxel
+    pred[4, 3, 1] = 4                                    # predicted one voxel along x
+    pred[0, 7, 3] = 15                                   # a manmade voxel outside the mask: not counted
+    mask = np.ones(label.shape, bool)
+    mask[0, 7, 3] = False
+    at0 = near_misses.near_counts(pred, label, mask, 0)
+    at1 = near_misses.near_counts(pred, label, mask, 1)
+    assert [int(a[4]) for a in at0] == [0, 1, 1]         # hits, misses, false positives
+    assert [int(a[4]) for a in at1] == [1, 0, 0]
+    assert near_misses.iou(*at0)[4] == 0.0 and near_misses.iou(*at1)[4] == 1.0
+    assert np.isnan(near_misses.iou(*at1)[15]) and np.isnan(near_misses.iou(*at1)[0])
+    pred[6, 3, 1] = 4                                    # two voxels away: a false positive at radius 1
+    assert [int(a[4]) for a in near_misses.near_counts(pred, label, mask, 1)] == [1, 0, 1]
+
+
+def test_the_near_miss_iou_at_radius_0_is_the_evaluations_iou():
+    rng = np.random.default_rng(0)
+    label = rng.choice([0, 4, 11, 15, FREE], size=(20, 20, 8), p=[0.02, 0.1, 0.2, 0.1, 0.58]).astype(np.uint8)
+    pred = np.where(rng.random(label.shape) < 0.3, rng.choice([4, 11, 15, FREE], size=label.shape), label)
+    mask = rng.random(label.shape) < 0.8
+    hist = np.bincount(label[mask].astype(np.int64) * 18 + pred[mask], minlength=18 * 18).reshape(18, 18)
+    expected = iou_from_confusion(hist)[:FREE]
+    got = near_misses.iou(*near_misses.near_counts(pred.astype(np.uint8), label, mask, 0))
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
+    np.testing.assert_allclose(got[~np.isnan(got)], expected[~np.isnan(expected)])
