@@ -186,6 +186,26 @@ def test_numba_path_matches_grid_sample_reference_values_and_gradients(dtype, to
         assert float((fast - ref).detach().abs().max()) <= tol * scale
 
 
+def test_numba_rendering_whose_semantics_no_loss_reads_leaves_the_logits_without_a_gradient():
+    # a free ray's opacity alone (the free-space terms): the logits get no gradient at all, and σ's gradient is the
+    # one with the semantics read at weight zero (the semantic term adds exact zeros: the same sums, bit for bit)
+    density, logits, origins, dirs, volume = _random_case()
+    cfg = RenderConfig(far=12.0, grid=SMALL, lookup="numba")
+    grads = []
+    for semantics_weight in (None, 0.0):
+        d, lg = density.clone().requires_grad_(True), logits.clone().requires_grad_(True)
+        out = render_rays(d, lg, origins, dirs, cfg, torch.Generator().manual_seed(3), volume)
+        loss = out.weight_sum.square().sum() + 0.5 * out.depth.sum()
+        if semantics_weight is not None:
+            loss = loss + semantics_weight * out.semantics.sum()
+        loss.backward()
+        grads.append((d.grad, lg.grad))
+    (sigma_alone, logits_alone), (sigma_read, logits_read) = grads
+    assert logits_alone is None
+    assert torch.count_nonzero(logits_read) == 0
+    assert torch.count_nonzero(sigma_alone) > 0 and torch.equal(sigma_alone, sigma_read)
+
+
 @pytest.mark.parametrize("stratified,uniform_mix", [(False, 0.0), (True, 0.2)])
 def test_numba_path_is_bit_identical_for_any_thread_count(stratified, uniform_mix):
     # the kernels split rays (forward) and voxel slabs (gradient scatter) across threads; no sum may depend on it

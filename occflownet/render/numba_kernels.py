@@ -223,9 +223,10 @@ def sigma_sample_grads(logits, logit_rows, origins, directions, ray_volume, ray_
                        shape, scale, weights, sigma_s, t_s, a_s, b_s, g_depth, g_sem, g_wsum, g_sigma_s):
     """∂L/∂σ_i for every fine sample → g_sigma_s [R, N] (written). Rays in parallel (in ``order``); reads only.
 
-    weights, sigma_s, t_s, a_s, b_s [R, N] from ``render_forward``; g_depth [R], g_sem [R, C], g_wsum [R].
+    weights, sigma_s, t_s, a_s, b_s [R, N] from ``render_forward``; g_depth [R], g_sem [R, C] or [R, 0] (no loss
+    reads the semantics: their term is skipped), g_wsum [R].
     """
-    n_rays, n_fine, channels = origins.shape[0], t_s.shape[1], logits.shape[1]
+    n_rays, n_fine, channels = origins.shape[0], t_s.shape[1], g_sem.shape[1]
     inv_voxel = 1.0 / voxel_size
     for n in prange(n_rays):
         r = order[n]

@@ -84,16 +84,20 @@ class NumbaRender(torch.autograd.Function):
         ctx.density_shape = density.shape
         ctx.save_for_backward(logits_flat, origins, directions, ray_volume, ray_logits, weights, sigma, t, a, b)
         ctx.mark_non_differentiable(weights, sigma, t, a, b)
+        ctx.set_materialize_grads(False)     # an output no loss reads arrives as None in backward
         return depth, semantics, weight_sum, weights, sigma, t, a, b
 
     @staticmethod
     def backward(ctx, g_depth, g_sem, g_wsum, *_unused):
         logits_flat, origins, directions, ray_volume, ray_logits, weights, sigma, t, a, b = ctx.saved_tensors
         cfg = ctx.cfg
-        need_sigma, need_logits = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        # the logits get no gradient when no loss reads the rendered semantics (a free ray's opacity alone): no
+        # zero-filled [m·X·Y·Z, C] gradient, and the kernels skip the semantic terms (g_sem with no channels)
+        need_sigma = ctx.needs_input_grad[0]
+        need_logits = ctx.needs_input_grad[1] and g_sem is not None
         n_rays, channels = origins.shape[0], logits_flat.shape[1]
         g_depth = weights.new_zeros(n_rays) if g_depth is None else g_depth
-        g_sem = weights.new_zeros(n_rays, channels) if g_sem is None else g_sem
+        g_sem = weights.new_zeros(n_rays, 0) if g_sem is None else g_sem
         g_wsum = weights.new_zeros(n_rays) if g_wsum is None else g_wsum
         lower, voxel_size, shape = _grid_args(cfg.grid)
         geometry = [_f64(origins), _f64(directions), _np(ray_volume), _np(ray_logits), ctx.order]
