@@ -86,7 +86,7 @@ _RECIPES = (
            {**_ROW3, **_RENDERING, "supervision": "2d+3d", "voxel_mask": True, **_QUICK_RAYS},
            "15.8 / 12.4 / 12.5 % val mIoU on the quickstart's val scene, 19.2 / 17.1 / 14.7 % on a 4-scene "
            "unseen world (`occflownet quickstart`, seeds 0 / 1 / 2)", _QUICKSTART,
-           step_seconds=0.288),
+           step_seconds=0.248),
     Recipe("quickstart-3d", "3D labels inside mask_camera only: the cheapest step", "Occ3D labels in mask_camera",
            {**_ROW1, "voxel_mask": True}, "12.5 / 15.3 % val mIoU (the former 6 x 8 quickstart world, "
            "seeds 0 / 1), cars 6 / 5 %",
