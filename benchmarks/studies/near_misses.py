@@ -18,6 +18,7 @@ import argparse
 import numpy as np
 from scipy import ndimage
 
+from occflownet.eval.metrics import nanmean
 from occflownet.occ3d import CLASS_NAMES, FREE
 
 NUM = FREE          # the occupied classes 0 .. 16
@@ -86,7 +87,7 @@ def main() -> None:
     print("| class | " + " | ".join(f"IoU r={r}" for r in radii) + " | labelled voxels | predicted free | "
           "predicted another class |")
     print("|---|" + "---|" * (len(radii) + 3))
-    print("| **mIoU** | " + " | ".join(f"**{100 * np.nanmean(ious[r]):.1f}**" for r in radii) + " | | | |")
+    print("| **mIoU** | " + " | ".join(f"**{100 * nanmean(ious[r]):.1f}**" for r in radii) + " | | | |")
     for c, name in enumerate(CLASS_NAMES[:NUM]):
         if np.isnan(ious[radii[0]][c]):
             continue
