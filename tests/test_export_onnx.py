@@ -11,6 +11,7 @@ from occflownet.export import onnx_export, parity
 from occflownet.export.parity import (DENSITY_TOL, OCCUPANCY_MIN_AGREEMENT, THRESHOLD_BAND, check_parity, compare,
                                       default_parity_samples, frame_sample)
 from occflownet import __version__
+from occflownet.model.decoder import slab_width
 from occflownet.occ3d import CAMERAS, CLASS_COLORS, CLASS_NAMES, GRID
 from occflownet.contract import METADATA_KEYS, create_session, decode_metadata
 from occflownet.runtime import ModelInputs, OnnxPredictor, TorchPredictor
@@ -109,7 +110,7 @@ def test_export_reports_parity_on_every_required_case(exported):
 
 
 def test_graph_is_standard_onnx_with_contract_v1_io(exported):
-    path, _, _ = exported
+    path, _, model = exported
     proto = onnx.load(str(path))
     onnx.checker.check_model(proto, full_check=True)
     assert {n.domain for n in proto.graph.node} == {""}
@@ -127,10 +128,14 @@ def test_graph_is_standard_onnx_with_contract_v1_io(exported):
     scatters = sorted((n.op_type, next((a.s.decode() for a in n.attribute if a.name == "reduction"), "none"))
                       for n in proto.graph.node if n.op_type.startswith("Scatter"))
     # no scatter adds (onnxruntime's ScatterND(add) races across threads, its ScatterElements(add) is
-    # single-threaded): the pooling sums by sorted segment sums and writes each trunk cell once, the skip features'
-    # row map writes each pooled voxel once, and the labels go to the NonZero indices of the occupied voxels: three
-    # reduction-less ScatterND on unique indices
-    assert scatters == [("ScatterND", "none")] * 3
+    # single-threaded): the pooling sums by sorted segment sums and writes each trunk cell once; each slab of the
+    # per-voxel chain writes its skip features to their own rows and its labels to the NonZero rows of its occupied
+    # voxels: 1 + 2 per slab reduction-less ScatterND on unique indices
+    cfg = model.cfg
+    xc, yc, zc = cfg.trunk_grid
+    per = yc * zc * cfg.decoder_stride ** 3
+    slabs = -(-xc // slab_width(xc, per, model.decoder.widest))
+    assert slabs > 1 and scatters == [("ScatterND", "none")] * (1 + 2 * slabs)
 
 
 def test_metadata(exported):

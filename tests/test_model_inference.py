@@ -1,12 +1,12 @@
 """The eval-mode (exported) computations checked against the training path's: sorted segment sums against
-``index_add``, the z-sliced trunk convolutions against Conv3d + BatchNorm, the skip-feature table against a dense
-scatter, the slabs' widths."""
+``index_add``, the z-sliced trunk convolutions against Conv3d + BatchNorm, the slabs' skip rows against a dense
+grid, the slabs' widths."""
 import numpy as np
 import pytest
 import torch
 from torch import nn
 
-from occflownet.model.decoder import SLAB_BYTES, ResBlock3d, conv_z, skip_table, slab_width, z_slices
+from occflownet.model.decoder import SLAB_BYTES, ResBlock3d, conv_z, slab_width, z_slices
 from occflownet.model.lift import POOL_BLOCK, BlockedPrefix, LiftSplat, run_ends, scatter_pool
 from test_model_lift import _rig, fine_grid
 
@@ -121,18 +121,29 @@ def test_the_eval_trunk_equals_the_conv3d_modules():
     assert torch.allclose(got, x.permute(0, 2, 3, 4, 1).reshape(-1, 8), rtol=1e-5, atol=1e-5)
 
 
-def test_skip_table_known_answers():
-    rows = torch.tensor([3, 9])                                                     # voxels 3 and 9 of 16, s³ = 8
-    sums = torch.tensor([[1.0, 10.0], [2.0, 20.0]])
-    bias = torch.arange(16.0)                                                       # sub-voxel k: [2k, 2k + 1]
-    index, table = skip_table((rows, sums), bias, 16, 8)
-    assert index.tolist() == [2 + v % 8 for v in range(3)] + [0] + [2 + v % 8 for v in range(4, 9)] + [1] + \
-        [2 + v % 8 for v in range(10, 16)]
-    assert table[:2].tolist() == [[1.0 + 6, 10.0 + 7], [2.0 + 2, 20.0 + 3]]        # sub-voxels 3 and 1
-    assert torch.equal(table[2:], bias.reshape(8, 2))
-    # a gather through the map is the dense grid of bias plus scattered sums (exact: one addition per element)
-    dense = scatter_pool(sums, rows, 16) + bias.reshape(8, 2).repeat(2, 1)
-    assert torch.equal(table[index], dense)
+@pytest.mark.parametrize("batch", [1, 2])
+def test_slab_rows_are_the_rows_of_each_slab_in_its_own_grid(batch):
+    """Every row lands in exactly one slab, at the row of the slab's own grid [B·n·per] that holds the same
+    (sample, plane, voxel), with its own value; the last slab is narrower (7 planes, slabs of 3)."""
+    from occflownet.model.decoder import SlabRows
+    planes, per, width = 7, 12, 3
+    g = torch.Generator().manual_seed(batch)
+    rows = torch.randperm(batch * planes * per, generator=g)[:40]                   # unique, any order
+    values = torch.randn(40, 2, generator=g)
+    dense = torch.zeros(batch * planes * per, 2)
+    dense[rows] = values
+    dense = dense.reshape(batch, planes, per, 2)
+    split = SlabRows(rows, values, planes, per, width)
+    seen = 0
+    for x0 in range(0, planes, width):
+        n = min(width, planes - x0)
+        local, got = split.within(x0)
+        slab = torch.zeros(batch * n * per, 2)
+        slab[local] = got
+        assert torch.equal(slab.reshape(batch, n, per, 2), dense[:, x0:x0 + n])  # same voxels, same values
+        assert len(local.unique()) == len(local)
+        seen += len(local)
+    assert seen == 40
 
 
 def test_slab_width():

@@ -269,65 +269,77 @@ class VoxelDecoder(nn.Module):
                                           else torch.index_select(x, 0, logit_rows))
         return sigma, semantic
 
-    def head_input(self, rows: torch.Tensor, addend: torch.Tensor | None) -> torch.Tensor:
-        """Eval: trunk rows [m, Ct] and, with skip features, ``addend`` [m·s³, Ch] (the projection's bias plus
-        the summed skip features of the m·s³ voxels, block layout; :func:`skip_table`) → the heads' input
-        [m·s³, Ch]: relu(projection + skip), the addend entering the matrix product as its C (ONNX Gemm); the
-        trunk rows themselves when s = 1."""
+    def head_input(self, rows: torch.Tensor, skip: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
+        """Eval: trunk rows [m, Ct] and, with skip features, ``skip`` = (rows int64 [k] of the m·s³ voxels, block
+        layout, unique; their summed skip features [k, Ch]) → the heads' input [m·s³, Ch]: relu(projection +
+        skip), the skip features added to the k rows they belong to (the order of the training path's
+        ``index_add``); the trunk rows themselves when s = 1."""
         if self.up is None:
             return rows
-        if addend is None:
-            return torch.relu(self.up(rows)).reshape(-1, self.head_channels)
-        y = torch.addmm(addend.reshape(rows.shape[0], -1), rows, self.up.weight.t())
-        return torch.relu(y).reshape(-1, self.head_channels)
+        y = self.up(rows).reshape(-1, self.head_channels)                          # [m·s³, Ch]
+        if skip is not None:
+            y = torch.index_put(y, (skip[0],), torch.index_select(y, 0, skip[0]) + skip[1])
+        return torch.relu(y)
+
+    def density_logits(self, x: torch.Tensor) -> torch.Tensor:
+        """Φσ on head inputs [N, Ch] → logits [N]; its one-output layer as the product of its weight row with the
+        hidden layer's transpose ([1, H] × [H, N], ONNX Gemm with transB), which onnxruntime runs about a sixth
+        faster than [N, H] × [H, 1] (docs/results.md#inference)."""
+        *hidden, out = self.sigma_head
+        for layer in hidden:
+            x = layer(x)
+        return torch.addmm(out.bias, out.weight, x.t()).reshape(-1)
 
     def fused_occupancy(self, trunk: torch.Tensor, fine_points, threshold: float):
         """Inference: (occupancy uint8, density float32) [B, X, Y, Z] (grid layout), from the trunk grid
         [B, Xc, Yc, Zc, C] and the pooled skip features (unique block-layout rows int64 [U], sums [U, Ch], as
         :class:`~occflownet.model.lift.LiftSplat` gives them in eval mode) or None.
 
-        Equals fusing :meth:`forward`'s outputs (argmax where σ ≥ τ else free). The per-voxel chain — projection,
-        skip features, ReLU, Φσ, sigmoid — runs slab by slab (:func:`slab_width` x-planes of every sample, static
-        shapes), so its 640,000-row intermediates are never written out whole; a slab reads its skip features
-        through a dense map of row numbers (:func:`skip_table`) and turns its σ into grid layout. The slabs hand
-        on σ and the heads' input; Φs runs once, on the voxels with σ ≥ τ (NonZero/Gather/ScatterND; rows are
-        unique, no reduction)."""
+        Equals fusing :meth:`forward`'s outputs (argmax where σ ≥ τ else free). The whole per-voxel chain —
+        projection, skip features, ReLU, Φσ, sigmoid, and Φs on the slab's voxels with σ ≥ τ — runs slab by slab
+        (:func:`slab_width` x-planes of every sample, static shapes), in block layout, so its 640,000-row
+        intermediates are never written out whole and no voxel index changes layout: a slab reads its skip
+        features as the rows of its planes (:class:`SlabRows`), picks its occupied rows where its σ
+        lies (NonZero/Gather; Φs; ScatterND of unique rows, no reduction), and turns σ and its classes into grid
+        layout once, as a transpose of the slab."""
         b, xc, yc, zc, _ = trunk.shape
         s = self.stride
         per = yc * zc * s ** 3                                                     # voxels per x-plane and sample
         rows = self.trunk_rows(trunk).reshape(b, xc, yc * zc, -1)                  # [B, Xc, Yc·Zc, Ct]
-        skip = None if fine_points is None or self.up is None else skip_table(fine_points, self.up.bias,
-                                                                                b * xc * per, s ** 3)
         width = slab_width(xc, per, self.widest)
-        density, inputs = [], []
+        skip = None if fine_points is None or self.up is None else SlabRows(*fine_points, xc, per, width)
+        density, occupancy = [], []
         for x0 in range(0, xc, width):
             n = min(width, xc - x0)
-            addend = None if skip is None else torch.index_select(
-                skip[1], 0, skip[0].reshape(b, xc, per)[:, x0:x0 + n].reshape(-1))  # [B·n·per, Ch]
-            x = self.head_input(rows[:, x0:x0 + n].reshape(-1, rows.shape[-1]), addend)
-            sigma = torch.sigmoid(self.sigma_head(x)).reshape(b, n, yc, zc, s ** 3)     # block layout
-            density.append(unblock(sigma, s))                                      # [B, n·s, Y, Z]
-            inputs.append(x.reshape(b, n, per, -1))
-        density = torch.cat(density, 1)                                            # [B, X, Y, Z]
-        occupied = torch.nonzero(density.reshape(-1) >= threshold).reshape(-1)     # grid rows
-        inputs = torch.cat(inputs, 1).reshape(-1, inputs[0].shape[-1])             # block layout
-        picked = torch.index_select(inputs, 0, block_rows(occupied, tuple(density.shape[1:]), s))
-        labels = torch.argmax(self.semantic_head(picked), dim=-1).to(torch.uint8)
-        occupancy = torch.full((density.numel(),), FREE, dtype=torch.uint8, device=density.device)
-        return occupancy.index_put((occupied,), labels).reshape(density.shape), density
+            picked = None if skip is None else skip.within(x0)
+            x = self.head_input(rows[:, x0:x0 + n].reshape(-1, rows.shape[-1]), picked)   # [B·n·per, Ch]
+            sigma = torch.sigmoid(self.density_logits(x))                         # [B·n·per], block layout
+            occupied = torch.nonzero(sigma >= threshold).reshape(-1)               # rows of this slab
+            labels = torch.argmax(self.semantic_head(torch.index_select(x, 0, occupied)), dim=-1)
+            classes = torch.full_like(sigma, FREE, dtype=torch.uint8).index_put((occupied,), labels.to(torch.uint8))
+            density.append(unblock(sigma.reshape(b, n, yc, zc, s ** 3), s))        # [B, n·s, Y, Z]
+            occupancy.append(unblock(classes.reshape(b, n, yc, zc, s ** 3), s))
+        return torch.cat(occupancy, 1), torch.cat(density, 1)
 
 
-def skip_table(fine_points: tuple[torch.Tensor, torch.Tensor], bias: torch.Tensor, voxels: int, s3: int):
-    """Pooled skip features (unique block-layout rows int64 [U] of a flattened grid of ``voxels`` voxels, sums
-    [U, Ch]) and the projection's bias [s³·Ch] → (map int64 [voxels], table [U + s³, Ch]): table row u < U is sum u
-    plus the bias of its sub-voxel, row U + k the bias of sub-voxel k alone; the map gives each voxel its row (a
-    voxel without skip features, sub-voxel k = row mod s³: U + k). A gather of the table through a slice of the map
-    is that slice's projection bias plus skip features — one scatter of U numbers instead of one of U·Ch features
-    into a dense [voxels, Ch] grid."""
-    rows, sums = fine_points
-    count = rows.shape[0]
-    sub_bias = bias.reshape(s3, -1)                                                # [s³, Ch]
-    table = torch.cat([sums + torch.index_select(sub_bias, 0, torch.remainder(rows, s3)), sub_bias])
-    # row mod s³ of every voxel, as s³ numbers repeated (an Expand: no per-voxel integer division in the graph)
-    index = (torch.arange(s3, device=rows.device) + count).expand(voxels // s3, s3).reshape(-1)
-    return torch.index_put(index, (rows,), torch.arange(count, device=rows.device)), table
+class SlabRows:
+    """Rows int64 [U] of a flattened block-layout grid [B·Xc·per] (``per`` voxels per x-plane and sample;
+    unique, any order) and their values [U, ...], split by the slabs of ``width`` x-planes that
+    :meth:`VoxelDecoder.fused_occupancy` runs: :meth:`within` gives the rows of slab x0 .. x0 + n − 1 (n = width,
+    or fewer for the last) as rows of that slab's own flattened grid [B·n·per], with their values. Each row's
+    slab and slab row are computed once, for all rows."""
+
+    def __init__(self, rows: torch.Tensor, values: torch.Tensor, planes: int, per: int, width: int):
+        self.values, self.width = values, width
+        plane = rows // per                                                        # b·Xc + x
+        b = plane // planes
+        x = plane - b * planes
+        self.slab = x // width
+        x0 = self.slab * width
+        n = torch.clamp(planes - x0, max=width)                                    # planes of the row's slab
+        self.local = (b * n + x - x0) * per + (rows - plane * per)                 # row of the slab's grid
+
+    def within(self, x0: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(rows int64 [k] of the grid of the slab starting at plane ``x0``, values [k, ...] of those rows)."""
+        keep = torch.nonzero(self.slab == x0 // self.width).reshape(-1)
+        return torch.index_select(self.local, 0, keep), torch.index_select(self.values, 0, keep)
