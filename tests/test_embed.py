@@ -157,14 +157,14 @@ def test_clean_build_from_scratch_without_warnings(embed_build, tmp_path):
 # ----------------------------------------------------------------------------------------------- equality
 @needs_frame
 def test_decoded_pixels_and_intrinsics_equal_python(embed_build, random_model, tmp_path):
-    """libjpeg-turbo's DCT scaling here and OpenCV's IMREAD_REDUCED_COLOR_2 in Python give the same RGB bytes for
-    the real frame at half scale (tiny: n = 2), and the calibration gives the same float32 intrinsics (1/2 rule)."""
+    """libjpeg-turbo's DCT scaling here and OpenCV's IMREAD_REDUCED_COLOR_4 in Python give the same RGB bytes for
+    the real frame at quarter scale (tiny: n = 4), and the calibration gives the same float32 intrinsics (1/4 rule)."""
     _, got = cpp_run(embed_build["run"], random_model, FRAME, FRAME / "calib.json", tmp_path)
     frame = python_frame(random_model, FRAME)
-    assert frame.reductions == (2,) * 6 and frame.sizes == ((1600, 900),) * 6
-    assert got["images"].shape == frame.images.shape == (6, 450, 800, 3)
+    assert frame.reductions == (4,) * 6 and frame.sizes == ((1600, 900),) * 6
+    assert got["images"].shape == frame.images.shape == (6, 225, 400, 3)
     assert np.array_equal(got["images"], frame.images)
-    K, _ = python_calibration(FRAME / "calib.json", 1600, 900, reduction=2)
+    K, _ = python_calibration(FRAME / "calib.json", 1600, 900, reduction=4)
     assert np.array_equal(got["K"], K)
 
 
@@ -214,7 +214,7 @@ def test_default_calibration_when_no_calib_given(embed_build, random_model, tmp_
     _, got = cpp_run(embed_build["run"], random_model, FRAME, None, tmp_path)
     calib_file = tmp_path / "default.json"
     calib_file.write_text(json.dumps(meta["default_calibration"]))
-    K, _ = python_calibration(calib_file, 1600, 900, reduction=2)
+    K, _ = python_calibration(calib_file, 1600, 900, reduction=4)
     np.testing.assert_allclose(got["K"], K, rtol=2e-7, atol=0)
 
 

@@ -106,7 +106,7 @@ def test_export_reports_parity_on_every_required_case(exported):
     assert any("two-rigs" in n for n in names)                           # two calibrations
     if frame_available():
         assert "frame:nuscenes-frame" in names and "frame:nuscenes-frame+turned-rig" in names
-        assert "frame:nuscenes-frame@1/2" in names                       # as predict/serve/C++ decode it (tiny)
+        assert "frame:nuscenes-frame@1/4" in names                       # as predict/serve/C++ decode it (tiny)
 
 
 def test_graph_is_standard_onnx_with_contract_v1_io(exported):

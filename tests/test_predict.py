@@ -130,9 +130,9 @@ def test_load_frame_decodes_the_six_images_in_parallel(monkeypatch):
 
     monkeypatch.setattr(predict, "decode_image", waiting)
     frame = predict.load_frame(FRAME, (160, 288))
-    assert frame.images.shape == (6, 450, 800, 3) and frame.reductions == (2,) * 6
+    assert frame.images.shape == (6, 225, 400, 3) and frame.reductions == (4,) * 6
     for i, cam in enumerate(CAMERAS):
-        assert np.array_equal(frame.images[i], decode_rgb((FRAME / f"{cam}.jpg").read_bytes(), 2))
+        assert np.array_equal(frame.images[i], decode_rgb((FRAME / f"{cam}.jpg").read_bytes(), 4))
 
 
 def test_bad_inputs_give_clear_errors(tmp_path, capsys):
@@ -190,32 +190,38 @@ def test_load_image_folder_reads_rgb_in_camera_order():
 
 
 @needs_frame
-def test_jpegs_are_decoded_at_the_scale_the_graph_would_keep():
-    """The contract's reduced-scale rule on the real frame: tiny (step 2 at 1600x900) gets the JPEGs at 1/2, base
-    (step 1) whole; a PNG is always whole. The half-scale decode is the 2x2 block average of the whole one: it
-    matches cv2.resize(INTER_AREA) of the whole decode (the pixel-centre rule with s = 1/2, the intrinsics' rule)
-    to a third of a grey level, 5-8x closer than the same average taken one stored pixel to the right."""
+def test_jpegs_are_decoded_at_the_smallest_scale_that_holds_the_network_input():
+    """The contract's reduced-scale rule on the real frame: tiny (160x288) gets the JPEGs at 1/4 (400x225; 1/8,
+    200x113, would not hold 288 columns), base (256x704) at 1/2 (800x450); a PNG and a small JPEG are whole. The
+    reduced decode is the n x n block average of the whole one: it matches cv2.resize(INTER_AREA) of the whole decode
+    (the pixel-centre rule with s = 1/n, the intrinsics' rule) to half a grey level, 3-7x closer than the same
+    average taken one stored pixel to the right."""
     import cv2
 
     from occflownet.contract import ImageHeader, decode_reduction
     from occflownet.predict import load_frame
 
-    frame = load_frame(FRAME, (160, 288))
-    assert frame.reductions == (2,) * 6 and frame.sizes == ((1600, 900),) * 6
-    assert frame.images.shape == (6, 450, 800, 3)
-    assert load_frame(FRAME, (256, 704)).reduction == 1 and load_frame(FRAME).images.shape == (6, 900, 1600, 3)
     assert decode_reduction(ImageHeader("png", 1600, 900, 33), (160, 288)) == 1
-    assert decode_reduction(ImageHeader("jpeg", 3200, 1800, 0), (160, 288)) == 4
+    assert decode_reduction(ImageHeader("jpeg", 3200, 1800, 0), (160, 288)) == 8
+    assert decode_reduction(ImageHeader("jpeg", 480, 270, 0), (160, 288)) == 1      # 240x135 holds no 160 rows
+    assert decode_reduction(ImageHeader("jpeg", 1600, 900, 0), (256, 704)) == 2     # 400 columns < 704
+    assert load_frame(FRAME).images.shape == (6, 900, 1600, 3)
     whole = load_image_folder(FRAME).astype(np.float32)
-    for i in range(6):
-        area = cv2.resize(whole[i], (800, 450), interpolation=cv2.INTER_AREA)
-        shifted = cv2.resize(np.roll(whole[i], -1, axis=1), (800, 450), interpolation=cv2.INTER_AREA)
-        err, err_shifted = (np.abs(frame.images[i] - a)[5:-5, 5:-5].mean() for a in (area, shifted))
-        assert err < 0.5 and err_shifted > 4 * err, (i, err, err_shifted)   # measured 0.31-0.34 vs 1.7-2.7
-    K = frame.inputs(json.loads((FRAME / "calib.json").read_text())).intrinsics[0]
-    K_whole, _ = calibration_arrays(json.loads((FRAME / "calib.json").read_text()), 1600, 900)
-    np.testing.assert_allclose(K[:, :2, :2], K_whole[:, :2, :2] / 2, rtol=1e-6)
-    np.testing.assert_allclose(K[:, :2, 2], (K_whole[:, :2, 2] + 0.5) / 2 - 0.5, rtol=1e-6)
+    calib = json.loads((FRAME / "calib.json").read_text())
+    K_whole, _ = calibration_arrays(calib, 1600, 900)
+    for input_size, n in (((160, 288), 4), ((256, 704), 2)):
+        frame = load_frame(FRAME, input_size)
+        assert frame.reductions == (n,) * 6 and frame.sizes == ((1600, 900),) * 6
+        assert frame.images.shape == (6, 900 // n, 1600 // n, 3)
+        for i in range(6):
+            size = (1600 // n, 900 // n)
+            area = cv2.resize(whole[i], size, interpolation=cv2.INTER_AREA)
+            shifted = cv2.resize(np.roll(whole[i], -1, axis=1), size, interpolation=cv2.INTER_AREA)
+            err, err_shifted = (np.abs(frame.images[i] - a)[5:-5, 5:-5].mean() for a in (area, shifted))
+            assert err < 0.5 and err_shifted > 3 * err, (n, i, err, err_shifted)   # 0.31-0.40 vs 1.4-2.8
+        K = frame.inputs(calib).intrinsics[0]
+        np.testing.assert_allclose(K[:, :2, :2], K_whole[:, :2, :2] / n, rtol=1e-6)
+        np.testing.assert_allclose(K[:, :2, 2], (K_whole[:, :2, 2] + 0.5) / n - 0.5, rtol=1e-6)
 
 
 def _png_and_five_jpegs(folder):
@@ -256,8 +262,8 @@ def _server_inputs(model, folder):
 
 @needs_frame
 def test_a_png_among_jpegs_gets_the_servers_inputs(tmp_path):
-    """CAM_FRONT.png and five JPEGs of the same 1600x900 size: the PNG is decoded whole, the JPEGs at 1/2 (tiny),
-    and the PNG is resized to their 800x450 with its intrinsics for that size, as the server does: the same
+    """CAM_FRONT.png and five JPEGs of the same 1600x900 size: the PNG is decoded whole, the JPEGs at 1/4 (tiny),
+    and the PNG is resized to their 400x225 with its intrinsics for that size, as the server does: the same
     images, intrinsics and cam2ego, exactly (the same decoders, resize and rescaling run on the same bytes)."""
     from occflownet.contract import decode_rgb, resize_rgb
     from occflownet.predict import load_frame
@@ -265,15 +271,15 @@ def test_a_png_among_jpegs_gets_the_servers_inputs(tmp_path):
     folder = _png_and_five_jpegs(tmp_path / "mixed")
     model = exported_tiny()[0]
     frame = load_frame(folder, exported_tiny()[2].cfg.input_size)
-    assert frame.reductions == (1, 2, 2, 2, 2, 2) and frame.sizes == ((1600, 900),) * 6
-    assert frame.images.shape == (6, 450, 800, 3)
+    assert frame.reductions == (1, 4, 4, 4, 4, 4) and frame.sizes == ((1600, 900),) * 6
+    assert frame.images.shape == (6, 225, 400, 3)
     whole = decode_rgb((folder / "CAM_FRONT.png").read_bytes())
-    np.testing.assert_array_equal(frame.images[0], resize_rgb(whole, (800, 450)))
+    np.testing.assert_array_equal(frame.images[0], resize_rgb(whole, (400, 225)))
     ours = frame.inputs(json.loads((folder / "calib.json").read_text()))
     theirs = _server_inputs(model, folder)
     for name in ("images", "intrinsics", "cam2ego"):
         np.testing.assert_array_equal(getattr(ours, name), getattr(theirs, name), err_msg=name)
-    K, _ = calibration_arrays(json.loads((FRAME / "calib.json").read_text()), 800, 450)    # 1600x900 → 800x450
+    K, _ = calibration_arrays(json.loads((FRAME / "calib.json").read_text()), 400, 225)    # 1600x900 → 400x225
     np.testing.assert_allclose(ours.intrinsics[0], K, rtol=1e-6)
 
 

@@ -36,15 +36,15 @@ def tiny_model(tmp_path_factory):
 
 
 def _direct_inputs():
-    """The frame as the contract says a tiny model is fed (JPEGs at half scale by DCT scaling, intrinsics by the
-    pixel-centre rule with s = 1/2), made here with cv2 and numpy alone."""
-    images = np.stack([cv2.cvtColor(cv2.imread(str(FRAME_DIR / f"{cam}.jpg"), cv2.IMREAD_REDUCED_COLOR_2),
+    """The frame as the contract says a tiny model is fed (JPEGs at quarter scale by DCT scaling, intrinsics by the
+    pixel-centre rule with s = 1/4), made here with cv2 and numpy alone."""
+    images = np.stack([cv2.cvtColor(cv2.imread(str(FRAME_DIR / f"{cam}.jpg"), cv2.IMREAD_REDUCED_COLOR_4),
                                     cv2.COLOR_BGR2RGB) for cam in CAMERAS])
-    assert images.shape == (6, 450, 800, 3)
+    assert images.shape == (6, 225, 400, 3)
     K, T = calibration_arrays(json.loads((FRAME_DIR / "calib.json").read_text()))
     K = K.astype(np.float64)
-    K[:, :2, :] *= 0.5
-    K[:, :2, 2] -= 0.25                                   # (c + 0.5) / 2 - 0.5
+    K[:, :2, :] *= 0.25
+    K[:, :2, 2] -= 0.375                                  # (c + 0.5) / 4 - 0.5
     return images, K.astype(np.float32), T
 
 
@@ -113,9 +113,9 @@ def _serve_folder(client, folder: Path, calib: bytes) -> np.ndarray:
 
 
 @pytest.mark.skipif(not FRAME_DIR.is_dir(), reason=f"shared real frame not found at {FRAME_DIR}")
-def test_predict_and_http_give_identical_grids_for_the_frame_and_its_half_size_copy(tmp_path):
-    """One calibration rule everywhere: the real frame at 1600x900 (JPEGs decoded at half scale)
-    and resized to 800x450 (PNG, decoded whole; calib.json still says 1600x900), through `occflownet predict
+def test_predict_and_http_give_identical_grids_for_the_frame_and_its_quarter_size_copy(tmp_path):
+    """One calibration rule everywhere: the real frame at 1600x900 (JPEGs decoded at quarter scale)
+    and resized to 400x225 (PNG, decoded whole; calib.json still says 1600x900), through `occflownet predict
     --model` and through POST /v1/occupancy, gives identical grids; both fed the pixel-centre-rescaled
     intrinsics."""
     from exported_models import exported_trained_tiny
@@ -126,11 +126,11 @@ def test_predict_and_http_give_identical_grids_for_the_frame_and_its_half_size_c
     from occflownet.serve.settings import ServeSettings
 
     model = exported_trained_tiny()[0]
-    half = tmp_path / "half"
-    half.mkdir()
+    quarter = tmp_path / "quarter"
+    quarter.mkdir()
     for cam in CAMERAS:
         image = cv2.imread(str(FRAME_DIR / f"{cam}.jpg"))
-        cv2.imwrite(str(half / f"{cam}.png"), cv2.resize(image, (800, 450), interpolation=cv2.INTER_AREA))
+        cv2.imwrite(str(quarter / f"{cam}.png"), cv2.resize(image, (400, 225), interpolation=cv2.INTER_AREA))
     calib_bytes = (FRAME_DIR / "calib.json").read_bytes()
     calib = json.loads(calib_bytes)
     assert calib["image_size"] == [1600, 900]
@@ -145,7 +145,7 @@ def test_predict_and_http_give_identical_grids_for_the_frame_and_its_half_size_c
         while client.get("/readyz").status_code != 200:
             assert time.monotonic() < deadline, client.get("/readyz").text
             time.sleep(0.1)
-        for name, folder in (("full", FRAME_DIR), ("half", half)):
+        for name, folder in (("full", FRAME_DIR), ("quarter", quarter)):
             out = tmp_path / f"{name}.npz"
             assert main(["predict", "--model", str(model), "--images", str(folder), "--calib",
                          str(FRAME_DIR / "calib.json"), "--out", str(out)]) == 0
@@ -156,11 +156,11 @@ def test_predict_and_http_give_identical_grids_for_the_frame_and_its_half_size_c
             grids[name] = served
             (inputs,), = fed
             got_K = inputs.intrinsics[0]
-            # the 1600x900 JPEGs are decoded at half scale (tiny), the 800x450 PNGs whole: both fed 800x450
-            assert inputs.images.shape == (1, 6, 450, 800, 3)
-            np.testing.assert_array_equal(got_K, calibration_arrays(calib, 800, 450)[0])
-    K_full, K_half = calibration_arrays(calib, 1600, 900)[0], calibration_arrays(calib, 800, 450)[0]
-    np.testing.assert_allclose(K_half[:, :2, :2], K_full[:, :2, :2] / 2, rtol=1e-6)
-    np.testing.assert_allclose(K_half[:, :2, 2], (K_full[:, :2, 2] + 0.5) / 2 - 0.5, rtol=1e-6)   # pixel centres
+            # the 1600x900 JPEGs are decoded at quarter scale (tiny), the 400x225 PNGs whole: both fed 400x225
+            assert inputs.images.shape == (1, 6, 225, 400, 3)
+            np.testing.assert_array_equal(got_K, calibration_arrays(calib, 400, 225)[0])
+    K_full, K_quarter = calibration_arrays(calib, 1600, 900)[0], calibration_arrays(calib, 400, 225)[0]
+    np.testing.assert_allclose(K_quarter[:, :2, :2], K_full[:, :2, :2] / 4, rtol=1e-6)
+    np.testing.assert_allclose(K_quarter[:, :2, 2], (K_full[:, :2, 2] + 0.5) / 4 - 0.5, rtol=1e-6)   # pixel centres
     assert np.mean(grids["full"] != 17) > 0.005                         # a trained model: an occupied grid
-    assert np.mean(grids["full"] == grids["half"]) > 0.99               # resizing first changes little
+    assert np.mean(grids["full"] == grids["quarter"]) > 0.99               # resizing first changes little

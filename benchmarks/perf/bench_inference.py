@@ -15,8 +15,9 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
 - ``baseline`` (``--baseline FILE``, an ONNX file of the same preset and weights, or ``--baseline-commit REV``:
   that commit is checked out in a ``git worktree`` and its own exporter writes the same weights, saved as a
   checkpoint by this script) fed whole images (the graph-only ratio against ``today, whole images``) and fed
-  at reduced scale, the six decoded one after another as a sequential ``predict`` does (the ratio a user sees
-  against ``today``, for a baseline that decodes at reduced scale but not in parallel);
+  at its own reduced scale (with ``--baseline-commit``: the ``decode_reduction`` of that checkout, asked of it;
+  else today's), the six decoded one after another as a sequential ``predict`` does (the end-to-end ratio a user
+  sees against ``today``);
 - with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations; 7-bit
   weights, and with ``int8-full`` 8-bit weights for CPUs with VNNI/AMX) and fp16 graphs, with their agreement with
   fp32 (the first row); ``--openvino`` adds today's fp32 and int8 graphs run by OpenVINO CPU (f32 precision hint),
@@ -67,14 +68,24 @@ from occflownet.cli import main
 sys.exit(main(["export", "--checkpoint", ckpt, "--out", out]))
 """
 
+# Prints the scale 1/n another checkout's inference paths decode a JPEG at (argv: root, jpeg, H_in, W_in).
+_FOREIGN_REDUCTION = """
+import sys
+root, jpeg, h, w = sys.argv[1:5]
+sys.path.insert(0, root)
+from occflownet.contract import decode_reduction, image_header
+print(decode_reduction(image_header(open(jpeg, "rb").read()), (int(h), int(w))))
+"""
 
-def bench_inputs(input_size):
+
+def bench_inputs(input_size, one_by_one_reduction: int | None = None):
     """(whole, reduced, one_by_one, source): whole = (ModelInputs of the six images decoded whole, decode), reduced =
-    (the same as the inference paths decode them, at reduced scale, decode), one_by_one = reduced with the six
-    decoded one after another; all built by the one feeds function (``occflownet.runtime.frame_inputs`` through
-    ``predict.Frame.inputs``). ``decode()`` → uint8 [6, H, W, 3], for the end-to-end timings: ``reduced``'s is
-    ``predict.load_frame`` (the files read and decoded in parallel threads, as the inference paths do), the others
-    decode the JPEGs held in memory in turn."""
+    (the same as the inference paths decode them, at reduced scale, decode), one_by_one = the six decoded one after
+    another at 1/``one_by_one_reduction`` (default: today's reduced scale), as a baseline's sequential ``predict``
+    decodes them; all built by the one feeds function (``occflownet.runtime.frame_inputs`` through
+    ``predict.Frame.inputs`` or with the reductions given). ``decode()`` → uint8 [6, H, W, 3], for the end-to-end
+    timings: ``reduced``'s is ``predict.load_frame`` (the files read and decoded in parallel threads, as the
+    inference paths do), the others decode the JPEGs held in memory in turn."""
     from occflownet.contract import decode_reduction, image_header, load_calibration
     from occflownet.predict import decode_image, find_camera_images, load_frame
     from occflownet.rig import default_rig
@@ -86,13 +97,15 @@ def bench_inputs(input_size):
         return same, same, same, "random images (no real frame)"
     calib = load_calibration(FRAME / "calib.json")
     blobs = [p.read_bytes() for p in find_camera_images(FRAME).values()]
+    header = image_header(blobs[0])
+    today = decode_reduction(header, input_size)
     decoded = []
-    for size in (None, input_size):
-        frame = load_frame(FRAME, size)
-        n = decode_reduction(image_header(blobs[0]), size)
-        decoded.append((frame.inputs(calib), lambda n=n: np.stack([decode_image(b, "image", n) for b in blobs])))
+    for n in (1, today if one_by_one_reduction is None else one_by_one_reduction):
+        images = np.stack([decode_image(b, "image", n) for b in blobs])
+        inputs = frame_inputs(images, calib, sizes=[(header.width, header.height)] * 6, reductions=[n] * 6)
+        decoded.append((inputs, lambda n=n: np.stack([decode_image(b, "image", n) for b in blobs])))
     whole, one_by_one = decoded
-    reduced = (one_by_one[0], lambda: load_frame(FRAME, input_size).images)
+    reduced = (load_frame(FRAME, input_size).inputs(calib), lambda: load_frame(FRAME, input_size).images)
     return whole, reduced, one_by_one, "real nuScenes frame"
 
 
@@ -139,9 +152,11 @@ def bench_model(name: str, occupied: float, checkpoint: str | None, inputs):
     return model
 
 
-def export_baseline_commit(rev: str, checkpoint: Path, out: Path, workdir: Path) -> Path:
+def export_baseline_commit(rev: str, checkpoint: Path, out: Path, workdir: Path,
+                           input_size: tuple[int, int]) -> tuple[Path, int | None]:
     """``rev``'s own exporter on ``checkpoint`` → ``out`` (a detached ``git worktree`` under ``workdir``, removed
-    afterwards)."""
+    afterwards), and the scale 1/n ``rev``'s inference paths decode the real frame's JPEGs at for ``input_size``
+    (None without the frame)."""
     tree = workdir / "baseline-tree"
     subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), rev], check=True,
                    capture_output=True)
@@ -150,9 +165,15 @@ def export_baseline_commit(rev: str, checkpoint: Path, out: Path, workdir: Path)
                               capture_output=True, text=True, cwd=tree)
         if proc.returncode != 0:
             raise RuntimeError(f"export at {rev} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}")
+        jpeg = FRAME / "CAM_FRONT.jpg"
+        reduction = None
+        if jpeg.is_file():
+            proc = subprocess.run([sys.executable, "-c", _FOREIGN_REDUCTION, str(tree), str(jpeg),
+                                   *map(str, input_size)], capture_output=True, text=True, cwd=tree, check=True)
+            reduction = int(proc.stdout.strip())
     finally:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], capture_output=True)
-    return out
+    return out, reduction
 
 
 def profile(session_path: Path, inputs, runs: int, threads: int) -> tuple[dict, dict, float]:
@@ -283,9 +304,13 @@ def build_graphs(name: str, args, model, whole, reduced, one_by_one, workdir: Pa
         if args.baseline_commit:
             ckpt = workdir / f"{name}.pt"
             save_checkpoint(ckpt, model, model.cfg)
-            export_baseline_commit(args.baseline_commit, ckpt, base, workdir)
+            _, n = export_baseline_commit(args.baseline_commit, ckpt, base, workdir, model.cfg.input_size)
+            if n is not None:       # fed as that commit's own paths decode the frame, one camera after another
+                one_by_one = bench_inputs(model.cfg.input_size, one_by_one_reduction=n)[2]
         label = f"baseline {args.baseline_commit or base.name}"
-        graphs += [(f"{label}, whole images", base, whole), (f"{label}, reduced scale one by one", base, one_by_one)]
+        (w, h) = one_by_one[0].image_size
+        graphs += [(f"{label}, whole images", base, whole),
+                   (f"{label}, its scale ({w}x{h}) one by one", base, one_by_one)]
     wanted = [] if args.variants is None else (args.variants or ["int8", "fp16"])
     for variant, int8_range in (("int8", "reduced"), ("int8-full", "full")):
         if variant in wanted:

@@ -157,13 +157,16 @@ EncodedImage probe_image(const std::string& path) {
 
 int decode_reduction(const EncodedImage& im, const std::array<int, 2>& input_size) {
     if (im.png) return 1;
-    // crop_window of occflownet/contract/images.py: the crop width and the decimation step
-    const long long h_in = input_size[0], w_in = input_size[1], H = im.height, W = im.width;
-    const long long crop_w = std::min(W, (2 * H * w_in + h_in) / (2 * h_in));
-    const long long step = std::max(1LL, crop_w / (2 * w_in));
+    // decode_reduction of occflownet/contract/images.py: the largest n whose decoded image (ceil(W/n) x ceil(H/n))
+    // still holds a crop window (crop_window there) of at least the network input
+    const long long h_in = input_size[0], w_in = input_size[1];
     int n = 1;
-    for (int candidate : {2, 4, 8})
-        if (candidate <= step) n = candidate;
+    for (int candidate : {2, 4, 8}) {
+        const long long w = (im.width + candidate - 1) / candidate, h = (im.height + candidate - 1) / candidate;
+        const long long crop_w = std::min(w, (2 * h * w_in + h_in) / (2 * h_in));
+        const long long crop_h = std::min(h, (2 * w * h_in + w_in) / (2 * w_in));
+        if (crop_w >= w_in && crop_h >= h_in) n = candidate;
+    }
     return n;
 }
 

@@ -41,8 +41,8 @@ void decode_all_into(const std::vector<EncodedImage>& images, std::uint8_t* dst,
                      int reduction = 1);
 
 // The scale 1/n a JPEG is decoded at for a model whose network input is input_size [H, W]: the contract's rule
-// (occflownet/contract/images.py, decode_reduction): the largest of 1, 2, 4, 8 not above the graph's decimation
-// step for the stored size (crop_window); always 1 for a PNG.
+// (occflownet/contract/images.py, decode_reduction): the largest of 1, 2, 4, 8 whose decoded image still holds a
+// crop window (crop_window) of at least the network input; always 1 for a PNG.
 int decode_reduction(const EncodedImage& image, const std::array<int, 2>& input_size);
 
 // Writes a NumPy .npy (format 1.0, C order) of `dtype` ("|u1" or "<f4") and `shape`.

@@ -112,8 +112,8 @@ int run(const Args& a) {
                                                      "); all six must match");
         }
 
-    // JPEGs are decoded at 1/n (the contract's reduced-scale rule, frame_io.hpp decode_reduction): the graph would
-    // keep only every n-th pixel of them. n is the same for the six (same size, same format checked below).
+    // JPEGs are decoded at 1/n (the contract's reduced-scale rule, frame_io.hpp decode_reduction): the smallest
+    // scale that still holds the network input. n is the same for the six (same size, same format checked below).
     const int n = occflownet::io::decode_reduction(images[0], info.input_size);
     for (const auto& im : images)
         if (occflownet::io::decode_reduction(im, info.input_size) != n)

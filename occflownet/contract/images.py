@@ -8,16 +8,19 @@
   computes it with the same function on symbolic shapes): the largest window of the internal aspect ratio,
   horizontally centred, bottom-aligned, every ``step``-th pixel when it is ≥ 4x the internal size.
 - **Reduced-scale JPEG decoding** (:func:`decode_reduction`): inference paths (``predict``, the server, the C++
-  runner) decode a JPEG at 1/n with libjpeg-turbo's DCT scaling instead of decoding every pixel and letting the
-  graph throw three of four away: n is the largest of 1, 2, 4, 8 not above the graph's ``step`` for the stored
-  size (1600 x 900 → tiny: n = 2; base: n = 1), PNGs are always decoded whole. The decoded image is
+  runner) decode a JPEG at 1/n with libjpeg-turbo's DCT scaling instead of decoding every pixel for the graph to
+  filter away: n is the largest of 1, 2, 4, 8 whose decoded image still holds a crop window at least as large as
+  the network input (the graph then only shrinks it; 1600 x 900 → tiny, 160 x 288: n = 4, 400 x 225; base,
+  256 x 704: n = 2, 800 x 450), PNGs are always decoded whole. The decoded image is
   ⌈W/n⌉ x ⌈H/n⌉ and output pixel i averages stored pixels [n·i, n·i + n), so its centre is stored coordinate
   n·i + (n − 1)/2: the intrinsics follow the pixel-centre rule with s = 1/n exactly, ``f' = f/n``,
   ``c' = (c + 0.5)/n − 0.5`` (:func:`occflownet.contract.calibration.Calibration.arrays_for` with
-  ``reductions``), whatever the rounding of an odd size. The graph then sees an image whose ``step`` is 1 (or
-  small) and filters it with the same triangle filter. Training decodes whole images (its data loaders are not
-  an inference path); the difference is the one between keeping every n-th pixel and averaging n x n pixels
-  before the same filter.
+  ``reductions``), whatever the rounding of an odd size. The graph then filters it with the same triangle
+  filter. Training decodes whole images (its data loaders are not an inference path); the difference is the one
+  between the graph's filter on the whole image (keeping every ``step``-th pixel first where it is ≥ 4x the
+  input) and the same filter on an image whose n x n blocks were averaged first: on a trained tiny and the real
+  frame, occupancy fed at 1/4 agrees with occupancy fed whole as closely as fed at 1/2 does
+  (docs/results.md#inference).
 - **Images of different sizes in one frame** (:func:`common_size`, :func:`resize_rgb`): the model takes one
   [6, H, W, 3] tensor, so the inference paths decode each image (at its own 1/n) and resize the ones not at the
   size most of the decoded images have; the intrinsics of a resized image follow by the pixel-centre rule.
@@ -116,12 +119,20 @@ def crop_window(height, width, input_size: tuple[int, int], subsample: bool = Tr
 
 
 def decode_reduction(header: ImageHeader, input_size: tuple[int, int] | None) -> int:
-    """n for decoding this image at 1/n: the largest of :data:`JPEG_REDUCTIONS` not above the graph's decimation
-    step for the stored size (:func:`crop_window`); 1 for a PNG or when ``input_size`` is None (decode whole)."""
+    """n for decoding this image at 1/n: the largest of :data:`JPEG_REDUCTIONS` whose decoded image (⌈W/n⌉ x
+    ⌈H/n⌉) still holds a crop window (:func:`crop_window`) of at least the network input ``input_size`` (H_in, W_in)
+    — the graph then only shrinks it —, 1 when none does; 1 for a PNG or when ``input_size`` is None (decode
+    whole)."""
     if header.format != "jpeg" or input_size is None:
         return 1
-    step = crop_window(header.height, header.width, tuple(input_size))[3]
-    return max(n for n in JPEG_REDUCTIONS if n <= step)
+    h_in, w_in = input_size
+
+    def holds(n: int) -> bool:
+        w, h = reduced_size(header.width, header.height, n)
+        y_start, x_start, x_end, _ = crop_window(h, w, (h_in, w_in), subsample=False)
+        return h - y_start >= h_in and x_end - x_start >= w_in
+
+    return max([1] + [n for n in JPEG_REDUCTIONS if holds(n)])
 
 
 def common_size(sizes: Sequence[tuple[int, int]]) -> tuple[int, int]:
