@@ -14,8 +14,8 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
 - ``today, whole images``: the same graph on the six images decoded whole (the graph-only gain);
 - ``baseline`` (``--baseline FILE``, an ONNX file of the same preset and weights, or ``--baseline-commit REV``:
   that commit is checked out in a ``git worktree`` and its own exporter writes the same weights, saved as a
-  checkpoint by this script) fed whole images (the graph-only ratio against ``today, whole images``) and fed
-  at its own reduced scale (with ``--baseline-commit``: the ``decode_reduction`` of that checkout, asked of it;
+  checkpoint by this script) fed whole images (the graph-only ratio against ``today, whole images``), fed
+  today's inputs (the graph-only ratio at the scale the inference paths decode) and fed at its own reduced scale (with ``--baseline-commit``: the ``decode_reduction`` of that checkout, asked of it;
   else today's), the six decoded one after another as a sequential ``predict`` does (the end-to-end ratio a user
   sees against ``today``);
 - with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations; 7-bit
@@ -309,7 +309,7 @@ def build_graphs(name: str, args, model, whole, reduced, one_by_one, workdir: Pa
                 one_by_one = bench_inputs(model.cfg.input_size, one_by_one_reduction=n)[2]
         label = f"baseline {args.baseline_commit or base.name}"
         (w, h) = one_by_one[0].image_size
-        graphs += [(f"{label}, whole images", base, whole),
+        graphs += [(f"{label}, whole images", base, whole), (f"{label}, today's scale", base, reduced),
                    (f"{label}, its scale ({w}x{h}) one by one", base, one_by_one)]
     wanted = [] if args.variants is None else (args.variants or ["int8", "fp16"])
     for variant, int8_range in (("int8", "reduced"), ("int8-full", "full")):
