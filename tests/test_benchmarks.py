@@ -12,7 +12,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))                     # the benchmarks package, when pytest runs from elsewhere
 
 from benchmarks import harness  # noqa: E402
-from benchmarks.studies import ablation, decode_scale, near_misses  # noqa: E402
+from benchmarks.studies import ablation, near_misses  # noqa: E402
 from occflownet.eval.metrics import iou_from_confusion  # noqa: E402
 from occflownet.occ3d import FREE  # noqa: E402
 from occflownet.cli import build_parser  # noqa: E402
@@ -134,11 +134,3 @@ def test_the_near_miss_iou_at_radius_0_is_the_evaluations_iou():
     got = near_misses.iou(*near_misses.near_counts(pred.astype(np.uint8), label, mask, 0))
     np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
     np.testing.assert_allclose(got[~np.isnan(got)], expected[~np.isnan(expected)])
-
-
-def test_the_decode_scales_are_those_that_hold_the_network_input():
-    from occflownet.contract import ImageHeader
-    header = ImageHeader("jpeg", 1600, 900, 0)
-    assert decode_scale.scales(header, (160, 288)) == [1, 2, 4]                     # 1/8: 200x113 < 288 columns
-    assert decode_scale.scales(header, (256, 704)) == [1, 2]                        # 1/4: 400 columns < 704
-    assert decode_scale.scales(ImageHeader("jpeg", 400, 200, 0), (256, 704)) == [1]  # too small: decoded whole

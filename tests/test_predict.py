@@ -198,13 +198,14 @@ def test_jpegs_are_decoded_at_the_smallest_scale_that_holds_the_network_input():
     average taken one stored pixel to the right."""
     import cv2
 
-    from occflownet.contract import ImageHeader, decode_reduction
+    from occflownet.contract import ImageHeader, decode_reduction, holding_reductions
     from occflownet.predict import load_frame
 
     assert decode_reduction(ImageHeader("png", 1600, 900, 33), (160, 288)) == 1
     assert decode_reduction(ImageHeader("jpeg", 3200, 1800, 0), (160, 288)) == 8
     assert decode_reduction(ImageHeader("jpeg", 480, 270, 0), (160, 288)) == 1      # 240x135 holds no 160 rows
     assert decode_reduction(ImageHeader("jpeg", 1600, 900, 0), (256, 704)) == 2     # 400 columns < 704
+    assert holding_reductions(1600, 900, (160, 288)) == [1, 2, 4] and holding_reductions(400, 200, (256, 704)) == [1]
     assert load_frame(FRAME).images.shape == (6, 900, 1600, 3)
     whole = load_image_folder(FRAME).astype(np.float32)
     calib = json.loads((FRAME / "calib.json").read_text())

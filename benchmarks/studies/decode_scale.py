@@ -3,9 +3,10 @@ reduced scale libjpeg decodes to, and what decoding and inference cost at each.
 
     python -m benchmarks.studies.decode_scale --onnx M.onnx [--frame DIR] [--runs 15] [--threads 2]
 
-For n in 1, 2, 4, 8 (those whose decoded image still holds the model's input window, and the contract's own n,
-``occflownet.contract.decode_reduction``, marked), the six JPEGs of the frame are decoded at 1/n, fed with the
-intrinsics of the pixel-centre rule (``occflownet.runtime.frame_inputs``) and run through onnxruntime. Printed
+For each n of 1, 2, 4, 8 whose decoded image still holds the model's input window
+(``occflownet.contract.holding_reductions``; the contract's own n, ``decode_reduction``, marked), the six JPEGs of
+the frame are decoded at 1/n, fed with the intrinsics of the pixel-centre rule (``occflownet.runtime.frame_inputs``)
+and run through onnxruntime. Printed
 per scale: decoded size, decoding time of the six in parallel threads (as ``predict.load_frame`` decodes them,
 p50), inference p50, occupied voxels; then for each pair of scales the voxels equal, the IoU of the occupied
 voxels and density max |Δ|. Use a trained model: random weights have no structure to keep.
@@ -25,19 +26,6 @@ import numpy as np
 from benchmarks.harness import SHARED_DATA
 
 FRAME = SHARED_DATA / "nuscenes-frame"
-
-
-def scales(header, input_size) -> list[int]:
-    """The JPEG scales 1/n whose decoded image holds a crop window of at least ``input_size``, 1 included."""
-    from occflownet.contract import JPEG_REDUCTIONS, crop_window, reduced_size
-
-    out = []
-    for n in JPEG_REDUCTIONS:
-        w, h = reduced_size(header.width, header.height, n)
-        y0, x0, x1, _ = crop_window(h, w, tuple(input_size), subsample=False)
-        if n == 1 or (h - y0 >= input_size[0] and x1 - x0 >= input_size[1]):
-            out.append(n)
-    return out
 
 
 def timed(fn, runs: int) -> float:
@@ -69,7 +57,7 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     args = p.parse_args(argv)
 
-    from occflownet.contract import decode_reduction, image_header, load_calibration
+    from occflownet.contract import decode_reduction, holding_reductions, image_header, load_calibration
     from occflownet.predict import decode_image, find_camera_images
     from occflownet.runtime import OnnxPredictor, frame_inputs
 
@@ -85,7 +73,7 @@ def main(argv=None) -> int:
     contract_n = decode_reduction(header, predictor.input_size)
     pool = ThreadPoolExecutor(len(blobs))
     outputs = {}
-    for n in scales(header, predictor.input_size):
+    for n in holding_reductions(header.width, header.height, predictor.input_size):
         decode = lambda n=n: np.stack(list(pool.map(lambda b: decode_image(b, "image", n), blobs)))  # noqa: E731
         images = decode()
         inputs = frame_inputs(images, calib, sizes=[(header.width, header.height)] * len(blobs),

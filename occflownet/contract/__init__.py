@@ -55,7 +55,7 @@ from occflownet.contract.calibration import (ASPECT_TOLERANCE, FLOAT32_LIMIT, MA
                                              load_calibration, parse_calibration_json, rescale_intrinsics,
                                              resize_matrix, scale_intrinsics, validate_calibration)
 from occflownet.contract.images import (JPEG_REDUCTIONS, ImageHeader, common_size, crop_window, decode_reduction,
-                                        decode_rgb, image_header, reduced_size, resize_rgb)
+                                        decode_rgb, holding_reductions, image_header, reduced_size, resize_rgb)
 from occflownet.contract.metadata import (METADATA_KEYS, REQUIRED_METADATA_KEYS, ModelMetadata, decode_metadata,
                                           encode_metadata, parse_metadata)
 from occflownet.contract.session import check_session, create_session
@@ -67,9 +67,9 @@ __all__ = [
     "ORTHONORMAL_TOLERANCE", "SINGULAR_TOLERANCE", "Calibration", "CalibrationError",
     "MissingCalibrationField", "calibration_arrays", "calibration_json", "load_calibration", "parse_calibration_json",
     "rescale_intrinsics", "resize_matrix", "scale_intrinsics", "validate_calibration",
-    "JPEG_REDUCTIONS", "ImageHeader", "common_size", "crop_window", "decode_reduction", "decode_rgb", "image_header",
-    "reduced_size", "resize_rgb", "METADATA_KEYS", "REQUIRED_METADATA_KEYS", "ModelMetadata", "decode_metadata",
-    "encode_metadata", "parse_metadata", "check_session", "create_session",
+    "JPEG_REDUCTIONS", "ImageHeader", "common_size", "crop_window", "decode_reduction", "decode_rgb",
+    "holding_reductions", "image_header", "reduced_size", "resize_rgb", "METADATA_KEYS", "REQUIRED_METADATA_KEYS",
+    "ModelMetadata", "decode_metadata", "encode_metadata", "parse_metadata", "check_session", "create_session",
     "CONTRACT_VERSION", "INPUT_NAMES", "INPUTS", "NUM_CAMERAS", "OUTPUT_NAMES", "OUTPUTS", "ContractError",
     "TensorSpec", "check_signature", "session_signature",
 ]

@@ -118,21 +118,26 @@ def crop_window(height, width, input_size: tuple[int, int], subsample: bool = Tr
     return height - crop_h + centre, x0 + centre, x0 + crop_w, step
 
 
+def holding_reductions(width: int, height: int, input_size: tuple[int, int]) -> list[int]:
+    """The n of :data:`JPEG_REDUCTIONS` whose decoded image (⌈W/n⌉ x ⌈H/n⌉ of a ``width`` x ``height`` JPEG) still
+    holds a crop window (:func:`crop_window`) of at least the network input ``input_size`` (H_in, W_in); 1 always."""
+    h_in, w_in = input_size
+    out = []
+    for n in JPEG_REDUCTIONS:
+        w, h = reduced_size(width, height, n)
+        y_start, x_start, x_end, _ = crop_window(h, w, (h_in, w_in), subsample=False)
+        if n == 1 or (h - y_start >= h_in and x_end - x_start >= w_in):
+            out.append(n)
+    return out
+
+
 def decode_reduction(header: ImageHeader, input_size: tuple[int, int] | None) -> int:
-    """n for decoding this image at 1/n: the largest of :data:`JPEG_REDUCTIONS` whose decoded image (⌈W/n⌉ x
-    ⌈H/n⌉) still holds a crop window (:func:`crop_window`) of at least the network input ``input_size`` (H_in, W_in)
-    — the graph then only shrinks it —, 1 when none does; 1 for a PNG or when ``input_size`` is None (decode
-    whole)."""
+    """n for decoding this image at 1/n: the largest of :func:`holding_reductions` — the smallest decoded image
+    that still holds the network input ``input_size`` (H_in, W_in), so the graph only shrinks it —; 1 for a PNG or
+    when ``input_size`` is None (decode whole)."""
     if header.format != "jpeg" or input_size is None:
         return 1
-    h_in, w_in = input_size
-
-    def holds(n: int) -> bool:
-        w, h = reduced_size(header.width, header.height, n)
-        y_start, x_start, x_end, _ = crop_window(h, w, (h_in, w_in), subsample=False)
-        return h - y_start >= h_in and x_end - x_start >= w_in
-
-    return max([1] + [n for n in JPEG_REDUCTIONS if holds(n)])
+    return max(holding_reductions(header.width, header.height, tuple(input_size)))
 
 
 def common_size(sizes: Sequence[tuple[int, int]]) -> tuple[int, int]:
