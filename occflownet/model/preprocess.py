@@ -97,17 +97,16 @@ def triangle_weights(length_in, length_out: int, device=None) -> tuple[torch.Ten
     return rows, w
 
 
-def resample_rows(x: torch.Tensor, length_out: int, start=0, step=1, length_in=None,
-                  filt: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+def resample_rows(x: torch.Tensor, length_out: int, start=0, step=1, length_in=None) -> torch.Tensor:
     """Triangle-filter resampling along axis 1 of the rows ``start + step·j`` (j < ``length_in``, default: all rows)
     of ``x`` [N, L, M] (any dtype: only the gathered rows are cast) → float32 [N, length_out, M]: one ``Gather`` of
-    the blocks' windows (whole contiguous rows) and one batched ``MatMul`` with the banded weights (``filt``, or
-    :func:`triangle_weights` of ``length_in`` → ``length_out``). ``start``/``step`` fold a crop and a decimation
-    into the gather, so nothing is sliced or copied first."""
+    the blocks' windows (whole contiguous rows) and one batched ``MatMul`` with the banded weights (see
+    :func:`triangle_weights`). ``start``/``step`` fold a crop and a decimation into the gather, so nothing is
+    sliced or copied first."""
     n, _, m = x.shape
     if length_in is None:
         length_in = x.shape[1]
-    rows, w = filt if filt is not None else triangle_weights(length_in, length_out, x.device)
+    rows, w = triangle_weights(length_in, length_out, x.device)
     blocks = w.shape[0]
     source = rows.reshape(-1) * step + start                                             # rows of x
     windows = torch.index_select(x, 1, source).to(torch.float32).reshape(n, blocks, -1, m)   # [N, nb, win, M]
@@ -132,29 +131,21 @@ def antialiased_resize(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
 
 def crop_resize_hwc(images: torch.Tensor, y_start, x_start, step, rows, cols,
                     size: tuple[int, int]) -> torch.Tensor:
-    """uint8 images channels-last [B, V, H, W, 3] → float32 channels-first [B·V, 3, size[0], size[1]]: the crop
-    window (rows ``y_start + step·i``, i < ``rows``; columns ``x_start + step·j``, j < ``cols``) resized by the
-    separable triangle filter, what ``antialiased_resize`` computes on the cropped, decimated, cast and permuted
-    images.
+    """uint8 images channels-last [N, H, W, 3] → float32 channels-first [N, 3, size[0], size[1]]: the crop window
+    (rows ``y_start + step·i``, i < ``rows``; columns ``x_start + step·j``, j < ``cols``) resized by the separable
+    triangle filter, what ``antialiased_resize`` computes on the cropped, decimated, cast and permuted images.
 
-    Data movement kept small: camera by camera (each camera's intermediates stay in the cache), the row pass
-    gathers whole image rows of the uint8 input (the camera, the crop and the decimation are its gather indices,
-    so no image is sliced or copied; only the gathered rows are cast to float) and filters all W·3 values of each
-    row; the small result [B, H_out, W, 3] is turned once to [B, W, 3·H_out] (one axis moved: a single-axis
-    Transpose), the column pass gathers its rows the same way, and the result [B, W_out, 3, H_out] is turned once
-    more into [B, 3, H_out, W_out]."""
-    b, v, height, width, _ = images.shape
+    Data movement kept small: the row pass gathers whole image rows of the uint8 input (the crop and the
+    decimation are its gather indices; only the gathered rows are cast to float) and filters all W·3 values of
+    each row; the small result [N, H_out, W, 3] is turned once to [N, W, 3·H_out] (one axis moved: a single-axis
+    Transpose), the column pass gathers its rows the same way, and the result [N, W_out, 3, H_out] is turned once
+    more into [N, 3, H_out, W_out]."""
+    n, height, width, _ = images.shape
     out_h, out_w = size
-    stacked = images.reshape(b, v * height, width * 3)                                   # rows of all cameras
-    row_filter = triangle_weights(rows, out_h, images.device)
-    col_filter = triangle_weights(cols, out_w, images.device)
-    out = []
-    for camera in range(v):
-        x = resample_rows(stacked, out_h, camera * height + y_start, step, rows, row_filter)   # [B, H_out, W·3]
-        x = x.reshape(b, out_h, width, 3).permute(0, 2, 3, 1).reshape(b, width, 3 * out_h)  # [B, W, 3·H_out]
-        x = resample_rows(x, out_w, x_start, step, cols, col_filter)                     # [B, W_out, 3·H_out]
-        out.append(x.reshape(b, out_w, 3, out_h).permute(0, 2, 3, 1))                   # [B, 3, H_out, W_out]
-    return torch.stack(out, 1).reshape(b * v, 3, out_h, out_w)
+    x = resample_rows(images.reshape(n, height, width * 3), out_h, y_start, step, rows)   # [N, H_out, W·3]
+    x = x.reshape(n, out_h, width, 3).permute(0, 2, 3, 1).reshape(n, width, 3 * out_h)   # [N, W, 3·H_out]
+    x = resample_rows(x, out_w, x_start, step, cols)                                      # [N, W_out, 3·H_out]
+    return x.reshape(n, out_w, 3, out_h).permute(0, 2, 3, 1)                             # [N, 3, H_out, W_out]
 
 
 def preprocess_images(images: torch.Tensor, intrinsics: torch.Tensor, input_size: tuple[int, int],
@@ -167,7 +158,8 @@ def preprocess_images(images: torch.Tensor, intrinsics: torch.Tensor, input_size
     cols = (x_end - x_start + step - 1) // step                    # kept columns x_start:x_end:step
     torch._check(rows > 0)  # tells torch.export the crop is non-empty (it always is)
     torch._check(cols > 0)
-    x = crop_resize_hwc(images, y_start, x_start, step, rows, cols, tuple(input_size))   # [B*V, 3, H_in, W_in]
+    x = crop_resize_hwc(images.reshape(b * v, height, width, 3), y_start, x_start, step, rows, cols,
+                        tuple(input_size))                         # [B*V, 3, H_in, W_in] float32
     mean_t = torch.tensor(mean, dtype=torch.float32, device=images.device).reshape(1, 3, 1, 1)
     inv_std = 1.0 / torch.tensor(std, dtype=torch.float32, device=images.device).reshape(1, 3, 1, 1)
     k = adjust_intrinsics(intrinsics, y_start, x_start, step, rows, cols, input_size)
