@@ -15,9 +15,9 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
 - ``baseline`` (``--baseline FILE``, an ONNX file of the same preset and weights, or ``--baseline-commit REV``:
   that commit is checked out in a ``git worktree`` and its own exporter writes the same weights, saved as a
   checkpoint by this script) fed whole images (the graph-only ratio against ``today, whole images``), fed
-  today's inputs (the graph-only ratio at the scale the inference paths decode) and fed at its own reduced scale (with ``--baseline-commit``: the ``decode_reduction`` of that checkout, asked of it;
-  else today's), the six decoded one after another as a sequential ``predict`` does (the end-to-end ratio a user
-  sees against ``today``);
+  today's inputs (the graph-only ratio at the scale the inference paths decode) and fed at its own reduced scale
+  (with ``--baseline-commit``: the ``decode_reduction`` of that checkout, asked of it; else today's), the six
+  decoded one after another as a sequential ``predict`` does (the end-to-end ratio a user sees against ``today``);
 - with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations; 7-bit
   weights, and with ``int8-full`` 8-bit weights for CPUs with VNNI/AMX) and fp16 graphs, with their agreement with
   fp32 (the first row); ``--openvino`` adds today's fp32 and int8 graphs run by OpenVINO CPU (f32 precision hint),
@@ -46,6 +46,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+from benchmarks.harness import worktree
 
 ROOT = Path(__file__).resolve().parents[2]
 FRAME = ROOT.parent / "shared" / "data" / "nuscenes-frame"
@@ -78,16 +80,31 @@ print(decode_reduction(image_header(open(jpeg, "rb").read()), (int(h), int(w))))
 """
 
 
-def bench_inputs(input_size, one_by_one_reduction: int | None = None):
+def one_by_one_inputs(reduction: int):
+    """(ModelInputs of the real frame's six JPEGs decoded at 1/``reduction``, decode): ``decode()`` → uint8
+    [6, H, W, 3] decodes the JPEGs held in memory one after another, as a sequential ``predict`` does; the inputs
+    are built by the one feeds function (``occflownet.runtime.frame_inputs``) with that reduction's intrinsics."""
+    from occflownet.contract import image_header, load_calibration
+    from occflownet.predict import decode_image, find_camera_images
+    from occflownet.runtime import frame_inputs
+
+    blobs = [p.read_bytes() for p in find_camera_images(FRAME).values()]
+    header = image_header(blobs[0])
+    decode = lambda: np.stack([decode_image(b, "image", reduction) for b in blobs])  # noqa: E731
+    inputs = frame_inputs(decode(), load_calibration(FRAME / "calib.json"),
+                          sizes=[(header.width, header.height)] * len(blobs), reductions=[reduction] * len(blobs))
+    return inputs, decode
+
+
+def bench_inputs(input_size):
     """(whole, reduced, one_by_one, source): whole = (ModelInputs of the six images decoded whole, decode), reduced =
     (the same as the inference paths decode them, at reduced scale, decode), one_by_one = the six decoded one after
-    another at 1/``one_by_one_reduction`` (default: today's reduced scale), as a baseline's sequential ``predict``
-    decodes them; all built by the one feeds function (``occflownet.runtime.frame_inputs`` through
-    ``predict.Frame.inputs`` or with the reductions given). ``decode()`` → uint8 [6, H, W, 3], for the end-to-end
-    timings: ``reduced``'s is ``predict.load_frame`` (the files read and decoded in parallel threads, as the
-    inference paths do), the others decode the JPEGs held in memory in turn."""
+    another at today's reduced scale (:func:`one_by_one_inputs`), as a sequential ``predict`` decodes them. Every
+    ``decode()`` → uint8 [6, H, W, 3], for the end-to-end timings: ``reduced``'s is ``predict.load_frame`` (the
+    files read and decoded in parallel threads, as the inference paths do), the others decode the JPEGs held in
+    memory in turn."""
     from occflownet.contract import decode_reduction, image_header, load_calibration
-    from occflownet.predict import decode_image, find_camera_images, load_frame
+    from occflownet.predict import find_camera_images, load_frame
     from occflownet.rig import default_rig
     from occflownet.runtime import frame_inputs
 
@@ -95,18 +112,11 @@ def bench_inputs(input_size, one_by_one_reduction: int | None = None):
         images = np.random.default_rng(0).integers(0, 256, (6, 900, 1600, 3), dtype=np.uint8)
         same = (frame_inputs(images, default_rig(1600, 900)), lambda: images)
         return same, same, same, "random images (no real frame)"
+    header = image_header(next(iter(find_camera_images(FRAME).values())).read_bytes())
     calib = load_calibration(FRAME / "calib.json")
-    blobs = [p.read_bytes() for p in find_camera_images(FRAME).values()]
-    header = image_header(blobs[0])
-    today = decode_reduction(header, input_size)
-    decoded = []
-    for n in (1, today if one_by_one_reduction is None else one_by_one_reduction):
-        images = np.stack([decode_image(b, "image", n) for b in blobs])
-        inputs = frame_inputs(images, calib, sizes=[(header.width, header.height)] * 6, reductions=[n] * 6)
-        decoded.append((inputs, lambda n=n: np.stack([decode_image(b, "image", n) for b in blobs])))
-    whole, one_by_one = decoded
     reduced = (load_frame(FRAME, input_size).inputs(calib), lambda: load_frame(FRAME, input_size).images)
-    return whole, reduced, one_by_one, "real nuScenes frame"
+    return one_by_one_inputs(1), reduced, one_by_one_inputs(decode_reduction(header, input_size)), \
+        "real nuScenes frame"
 
 
 def matmul_gflops(n: int = 2048, reps: int = 5) -> float:
@@ -152,28 +162,21 @@ def bench_model(name: str, occupied: float, checkpoint: str | None, inputs):
     return model
 
 
-def export_baseline_commit(rev: str, checkpoint: Path, out: Path, workdir: Path,
-                           input_size: tuple[int, int]) -> tuple[Path, int | None]:
-    """``rev``'s own exporter on ``checkpoint`` → ``out`` (a detached ``git worktree`` under ``workdir``, removed
-    afterwards), and the scale 1/n ``rev``'s inference paths decode the real frame's JPEGs at for ``input_size``
-    (None without the frame)."""
-    tree = workdir / "baseline-tree"
-    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), rev], check=True,
-                   capture_output=True)
-    try:
+def export_baseline_commit(rev: str, checkpoint: Path, out: Path, input_size: tuple[int, int]) -> int | None:
+    """``rev``'s own exporter on ``checkpoint`` → ``out`` (``rev`` checked out by ``benchmarks.harness.worktree``),
+    and the scale 1/n ``rev``'s inference paths decode the real frame's JPEGs at for ``input_size`` (None without
+    the frame)."""
+    with worktree(rev) as tree:
         proc = subprocess.run([sys.executable, "-c", _FOREIGN_EXPORT, str(tree), str(checkpoint), str(out)],
                               capture_output=True, text=True, cwd=tree)
         if proc.returncode != 0:
             raise RuntimeError(f"export at {rev} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}")
         jpeg = FRAME / "CAM_FRONT.jpg"
-        reduction = None
-        if jpeg.is_file():
-            proc = subprocess.run([sys.executable, "-c", _FOREIGN_REDUCTION, str(tree), str(jpeg),
-                                   *map(str, input_size)], capture_output=True, text=True, cwd=tree, check=True)
-            reduction = int(proc.stdout.strip())
-    finally:
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], capture_output=True)
-    return out, reduction
+        if not jpeg.is_file():
+            return None
+        proc = subprocess.run([sys.executable, "-c", _FOREIGN_REDUCTION, str(tree), str(jpeg), *map(str, input_size)],
+                              capture_output=True, text=True, cwd=tree, check=True)
+        return int(proc.stdout.strip())
 
 
 def profile(session_path: Path, inputs, runs: int, threads: int) -> tuple[dict, dict, float]:
@@ -304,9 +307,9 @@ def build_graphs(name: str, args, model, whole, reduced, one_by_one, workdir: Pa
         if args.baseline_commit:
             ckpt = workdir / f"{name}.pt"
             save_checkpoint(ckpt, model, model.cfg)
-            _, n = export_baseline_commit(args.baseline_commit, ckpt, base, workdir, model.cfg.input_size)
+            n = export_baseline_commit(args.baseline_commit, ckpt, base, model.cfg.input_size)
             if n is not None:       # fed as that commit's own paths decode the frame, one camera after another
-                one_by_one = bench_inputs(model.cfg.input_size, one_by_one_reduction=n)[2]
+                one_by_one = one_by_one_inputs(n)
         label = f"baseline {args.baseline_commit or base.name}"
         (w, h) = one_by_one[0].image_size
         graphs += [(f"{label}, whole images", base, whole), (f"{label}, today's scale", base, reduced),

@@ -6,43 +6,30 @@ reduced scale libjpeg decodes to, and what decoding and inference cost at each.
 For each n of 1, 2, 4, 8 whose decoded image still holds the model's input window
 (``occflownet.contract.holding_reductions``; the contract's own n, ``decode_reduction``, marked), the six JPEGs of
 the frame are decoded at 1/n, fed with the intrinsics of the pixel-centre rule (``occflownet.runtime.frame_inputs``)
-and run through onnxruntime. Printed
-per scale: decoded size, decoding time of the six in parallel threads (as ``predict.load_frame`` decodes them,
-p50), inference p50, occupied voxels; then for each pair of scales the voxels equal, the IoU of the occupied
-voxels and density max |Δ|. Use a trained model: random weights have no structure to keep.
+and run through onnxruntime. Printed per scale: decoded size, decoding time of the six in parallel threads (as
+``predict.load_frame`` decodes them) and inference time (p50 of ``--runs`` rounds, the two interleaved after one
+warm-up: ``benchmarks.harness.interleaved``), occupied voxels; then for each pair of scales the voxels equal, the
+IoU of the occupied voxels and density max |Δ|. Use a trained model: random weights have no structure to keep.
 """
 from __future__ import annotations
 
 import argparse
 import os
 import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 from itertools import combinations
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.harness import SHARED_DATA
+from benchmarks.harness import SHARED_DATA, interleaved
+from occflownet.occ3d import FREE
 
 FRAME = SHARED_DATA / "nuscenes-frame"
 
 
-def timed(fn, runs: int) -> float:
-    """p50 seconds of ``runs`` calls after one warm-up."""
-    fn()
-    ts = []
-    for _ in range(runs):
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
-
-
 def compare(a, b) -> str:
     """Voxels equal, occupied-voxel IoU and density max |Δ| of two (occupancy, density) outputs."""
-    from occflownet.occ3d import FREE
-
     oa, ob = a[0] != FREE, b[0] != FREE
     iou = np.sum(oa & ob) / max(1, np.sum(oa | ob))
     return (f"voxels equal {100 * np.mean(a[0] == b[0]):.3f} %, occupied IoU {100 * iou:.2f} %, "
@@ -78,11 +65,12 @@ def main(argv=None) -> int:
         images = decode()
         inputs = frame_inputs(images, calib, sizes=[(header.width, header.height)] * len(blobs),
                               reductions=[n] * len(blobs))
-        outputs[n] = predictor(inputs)
-        t_decode, t_infer = timed(decode, args.runs), timed(lambda: predictor(inputs), args.runs)
+        outputs[n] = predictor(inputs)                                             # also the warm-up
+        walls = interleaved({"decode": decode, "inference": lambda: predictor(inputs)}, args.runs)
+        t_decode, t_infer = (float(np.median([t for t, _ in walls[side]])) for side in ("decode", "inference"))
         mark = "  <- the contract's scale for this model" if n == contract_n else ""
         print(f"1/{n}: {images.shape[2]}x{images.shape[1]}, decode p50 {1e3 * t_decode:.1f} ms, inference p50 "
-              f"{1e3 * t_infer:.1f} ms, occupied {100 * np.mean(outputs[n][0] != 17):.2f} % of voxels{mark}",
+              f"{1e3 * t_infer:.1f} ms, occupied {100 * np.mean(outputs[n][0] != FREE):.2f} % of voxels{mark}",
               flush=True)
     for a, b in combinations(sorted(outputs), 2):
         print(f"1/{a} against 1/{b}: {compare(outputs[a], outputs[b])}")
