@@ -134,3 +134,41 @@ def test_preprocessing_exports_without_resize():
         x_t, k_t = preprocess_images(imgs, Ks, INPUT, IMAGENET_MEAN, IMAGENET_STD)
         x_o, k_o = session.run(None, {"images": imgs.numpy(), "intrinsics": Ks.numpy()})
         assert np.abs(x_o - x_t.numpy()).max() < 1e-5 and np.allclose(k_o, k_t.numpy(), rtol=1e-6)
+
+
+@pytest.mark.parametrize("n_out", [1, 5, 16, 17, 160, 288])
+def test_resampling_windows_hold_every_tap(n_out):
+    """The banded blocks (their windows sized from the ratio) hold every non-zero tap of the triangle filter: put back
+    into a dense [n_out, n_in] matrix they equal the independently written one, for reductions and enlargements."""
+    from occflownet.model.preprocess import BLOCK, triangle_weights
+
+    for n_in in list(range(1, 80)) + list(range(80, 1700, 37)):
+        rows, w = triangle_weights(n_in, n_out)
+        want = _triangle_matrix(n_in, n_out)
+        dense = np.zeros((rows.shape[0] * BLOCK, n_in))
+        for b in range(rows.shape[0]):
+            np.add.at(dense[b * BLOCK:(b + 1) * BLOCK], (slice(None), rows[b].numpy()), w[b].double().numpy())
+            for k in range(BLOCK):
+                if b * BLOCK + k < n_out:
+                    taps = np.flatnonzero(want[b * BLOCK + k] > 0)
+                    assert np.isin(taps, rows[b].numpy()).all(), (n_in, n_out, b * BLOCK + k)
+        assert np.abs(dense[:n_out] - want).max() < 1e-4, (n_in, n_out)            # float32 weights
+
+
+@pytest.mark.parametrize("height,width", [(900, 1600), (450, 800), (225, 400), (200, 900), (1000, 1000)])
+def test_preprocessing_is_the_crop_then_the_triangle_filter(height, width):
+    """Known answer: the graph's preprocessing (crop and decimation folded into the gathers of the two passes, on the
+    uint8 images as they come) equals cropping and decimating the images first, then the reference filter, then
+    normalising."""
+    from occflownet.model.preprocess import antialiased_resize
+
+    images = torch.randint(0, 256, (1, 6, height, width, 3), dtype=torch.uint8,
+                           generator=torch.Generator().manual_seed(height + width))
+    K = torch.from_numpy(calibration_arrays(default_rig(width, height))[0])[None]
+    got = preprocess_images(images, K, INPUT, IMAGENET_MEAN, IMAGENET_STD)[0]
+    y0, x0, x1, n = crop_window(height, width, INPUT)
+    crop = images[0, :, y0::n, x0:x1:n].permute(0, 3, 1, 2).float()                  # [6, 3, rows, cols]
+    mean, std = torch.tensor(IMAGENET_MEAN)[:, None, None], torch.tensor(IMAGENET_STD)[:, None, None]
+    want = (antialiased_resize(crop, INPUT) - mean) / std
+    assert got.shape == want.shape == (6, 3, *INPUT)
+    assert (got - want).abs().max() < 1e-4                                           # float32, 0..255 / ~58

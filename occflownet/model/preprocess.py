@@ -74,13 +74,15 @@ def triangle_weights(length_in, length_out: int, device=None) -> tuple[torch.Ten
     ``c_i = (i + 0.5) · r`` (pixel j covers [j, j + 1)), r = L_in / L_out. The filter is ``max(0, 1 − |d| / a)``
     with ``d = j + 0.5 − c_i`` and support a = max(r, 1) (plain bilinear when enlarging), normalised to sum 1 over
     the pixels inside the image — PIL's and torch's ``antialias=True`` definition. Block b reads the window of
-    ``win = (BLOCK + 1)·ceil(a) + 2`` input pixels starting at ``floor(c_{b·BLOCK} − a + 0.5)``, which holds the
-    support of all its outputs; pixels of the window outside the support or the image get weight 0 (so a window
-    start that rounds one pixel lower in another runtime gives the same sums). ``length_in`` may be a symbolic shape
-    int (export): window and weights are computed in the graph from the runtime size.
+    ``win = ceil((BLOCK − 1)·r + 2a) + 2`` input pixels starting at ``floor(c_{b·BLOCK} − a + 0.5)``: the supports of
+    its outputs span D = (BLOCK − 1)·r + 2a, so they touch at most ceil(D) pixels counted from the start, and the
+    window holds them with two to spare; pixels of the window outside the support or the image get weight 0 (so a
+    window start that rounds one pixel lower in another runtime gives the same sums). ``length_in`` may be a symbolic
+    shape int (export): window and weights are computed in the graph from the runtime size.
     """
     blocks = -(-length_out // BLOCK)
-    window = (BLOCK + 1) * torch.sym_max(1, (length_in + length_out - 1) // length_out) + 2
+    # ceil(((BLOCK − 1)·L_in + 2·max(L_in, L_out)) / L_out) + 2, in integers (L_in may be a symbolic shape int)
+    window = ((BLOCK - 1) * length_in + 2 * torch.sym_max(length_in, length_out) + length_out - 1) // length_out + 2
     zero = torch.zeros((), dtype=torch.float32, device=device)
     ratio = (zero + length_in) / length_out
     support = torch.clamp(ratio, min=1.0)
