@@ -386,12 +386,22 @@ FOOTPRINT_OPTIONS = {   # the recommended rendering (docs/training.md; its free 
     "free_prior_weight": 2.0}
 
 
-@pytest.mark.parametrize("options", [{}, FOOTPRINT_OPTIONS, {"flow": True}], ids=["2d-base", "recipe", "flow"])
+QUICKSTART_OPTIONS = {**FOOTPRINT_OPTIONS, "supervision": "2d+3d", "voxel_mask": True, "horizon": 0,
+                      "dynamic_filter": False, "disocclusion": False, "loss_weighting": False}
+
+
+@pytest.mark.parametrize("options", [{}, FOOTPRINT_OPTIONS, {"flow": True}, QUICKSTART_OPTIONS,
+                                     {"supervision": "2d+3d", "flow": True},
+                                     {"supervision": "2d+3d", "voxel_mask": True}],
+                         ids=["2d-base", "recipe", "flow", "quickstart", "2d3d-flow", "2d3d-mask"])
 def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(options, tmp_path):
     """A trained tiny checkpoint (occupied voxels of several classes, so disocclusion, the warp and the point terms
     see something), a real 2-sample batch of the 2D base (t in [-3, 3], dynamic filter, disocclusion), of the
-    fitting recipe and of occupancy flow: with the heads run on the footprint only, the step computes the same terms
-    and the same parameter gradients as with the heads on the whole grid; the footprint is a part of the grid."""
+    fitting recipe, of occupancy flow, of the quickstart (3D labels in mask_camera and the current frame's rays) and
+    of 3D labels on every voxel (with flow) or in mask_camera: with the heads run on the footprint (and the
+    labelled voxels) only, the
+    step computes the same terms and the same parameter gradients as with the heads on the whole grid; the
+    footprint is a part of the grid."""
     from exported_models import trained_tiny_checkpoint, workdir
     from occflownet.model import load_checkpoint
     from occflownet.train import loop
@@ -420,7 +430,13 @@ def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(opt
         if footprint:
             share = len(rows["logits_at"]) / (2 * 640_000)
             assert 0.05 < share < 0.8, share
-            assert (rows["density_at"] is None) == ("free_prior_weight" in options)   # the prior reads every σ
+            # the prior, and the 3D density term without a mask, read every σ
+            everywhere = "free_prior_weight" in options or ("supervision" in options and not cfg.voxel_mask)
+            assert (rows["density_at"] is None) == everywhere
+            if "supervision" in options:                       # the labelled voxels are among the rows
+                assert bool(torch.isin(step_batch["occupied_rows"], rows["logits_at"]).all())
+                if not everywhere:
+                    assert bool(torch.isin(step_batch["voxel_rows"], rows["density_at"]).all())
             occupied = (outputs["density"] >= model.cfg.threshold).float().mean()
             assert 0.001 < occupied < 0.5                       # a trained grid: some voxels occupied
     (dense, dense_grads), (rows_terms, row_grads) = results
@@ -432,8 +448,16 @@ def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(opt
         torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-6)
 
 
-def test_heads_stay_on_the_whole_grid_with_3d_labels():
+def test_where_the_heads_run():
+    """On the footprint wherever rays are rendered, with 3D labels too; on the labelled voxels with 3D labels alone;
+    on the whole grid when the footprint is turned off (the tests' reference)."""
+    from occflownet.model.presets import get_preset
+    from occflownet.train.step import LossComputer
+
     assert _computer(supervision="2d").heads_on_footprint and _computer(supervision="2d", flow=True).heads_on_footprint
     assert _computer(supervision="2d", free_prior_weight=0.5).heads_on_footprint     # σ on the grid, logits not
-    losses = _computer(supervision="2d+3d", voxel_mask=True)
-    assert not losses.heads_on_footprint and losses.head_rows({}, torch.device("cpu")) == {}
+    assert _computer(supervision="2d+3d", voxel_mask=True).heads_on_footprint
+    labels_only = _computer(supervision="3d", voxel_mask=True, horizon=0)
+    assert labels_only.heads_at_rows and not labels_only.heads_on_footprint
+    whole = LossComputer(TrainConfig(supervision="2d+3d"), get_preset("tiny"), None, footprint=False)
+    assert not whole.heads_on_footprint and whole.head_rows({}, torch.device("cpu")) == {}

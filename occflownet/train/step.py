@@ -52,12 +52,15 @@ class LossComputer:
 
     @property
     def heads_on_footprint(self) -> bool:
-        """Whether the semantic head (and σ's, unless the free prior reads every σ) needs to run only on the rays'
-        footprint (:meth:`footprint_rows`): the terms read the logits through renderings and the rays' points only
-        (no voxel labels). Exact: a step computes the same loss and gradients either way
-        (tests/test_train_losses.py)."""
-        return (self.footprint and "voxel_labels" not in self.data
-                and bool(self.needs & {*RENDERINGS, *POINT_INPUTS}) and "logits" not in self.needs)
+        """Whether the semantic head (and σ's, unless a term reads every σ) needs to run only on the rays'
+        footprint (:meth:`footprint_rows`, with the labelled voxels the 3D terms read): the terms read the logits
+        through renderings, the rays' points and the voxel labels only. Exact: a step computes the same loss and
+        gradients either way (tests/test_train_losses.py)."""
+        return self.footprint and bool(self.needs & {*RENDERINGS, *POINT_INPUTS}) and "logits" not in self.needs
+
+    def _sigma_everywhere(self, batch: dict) -> bool:
+        """Whether a term reads σ of every voxel: the free prior, or the 3D density term without a voxel mask."""
+        return "density" in self.needs or ("voxel_sigma" in self.needs and batch.get("voxel_rows") is None)
 
     def head_rows(self, batch: dict, device) -> dict:
         """Keyword arguments of the model's forward for this batch: ``density_at`` / ``logits_at`` (the rows of
@@ -72,16 +75,17 @@ class LossComputer:
         if self.heads_on_footprint:
             rows = self.footprint_rows(batch).to(device)
             batch["footprint_rows"] = rows
-            return {"density_at": None if "density" in self.needs else rows, "logits_at": rows}
+            return {"density_at": None if self._sigma_everywhere(batch) else rows, "logits_at": rows}
         return {}
 
     def footprint_rows(self, batch: dict) -> torch.Tensor:
         """int64 [K], ascending rows of the batch's flattened grids [B·X·Y·Z]: every voxel that this step's terms
         can read — the footprint (:func:`~occflownet.render.footprint.ray_footprint`) of the batch's rays up to
         the rendering's far end (or their free stretch's end, if beyond) and of its free rays, in the grid of the
-        sample each ray's volume belongs to, the voxels holding the rays' points and, with flow, the voxels of the
-        boxes whose predicted voxels move (the warp reads them there; what it writes elsewhere it reads only at the
-        voxel it writes)."""
+        sample each ray's volume belongs to, the voxels holding the rays' points, with 3D labels the voxels their
+        terms read (the labelled occupied ones; the kept ones too where σ is not computed everywhere) and, with
+        flow, the voxels of the boxes whose predicted voxels move (the warp reads them there; what it writes
+        elsewhere it reads only at the voxel it writes)."""
         grid, far = self.render_cfg.grid, self.render_cfg.far
         samples = int(batch["images"].shape[0])
         source = batch["volume_source"].numpy()
@@ -104,7 +108,12 @@ class LossComputer:
             mask[(b[inside], *ijk[inside].T)] = True
         for b, (moves, _) in enumerate(batch.get("flow", [])):          # one entry per sample, in batch order
             mask[(b, *np.asarray(moves["voxels"]).reshape(-1, 3).T)] = True
-        return torch.from_numpy(np.flatnonzero(mask.reshape(-1)).astype(np.int64))
+        flat = mask.reshape(-1)
+        if "occupied_logits" in self.needs:
+            flat[batch["occupied_rows"].numpy()] = True
+        if "voxel_sigma" in self.needs and not self._sigma_everywhere(batch):
+            flat[batch["voxel_rows"].numpy()] = True
+        return torch.from_numpy(np.flatnonzero(flat).astype(np.int64))
 
     def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None,
                  step: int | None = None) -> dict:
@@ -137,8 +146,7 @@ class LossComputer:
             found["voxel_sigma"] = self._at_rows(density.reshape(-1), batch.get("voxel_rows"), density.dim() == 1,
                                                  device)
         if "occupied_logits" in self.needs:
-            found["occupied_logits"] = self._at_rows(logits.reshape(-1, logits.shape[-1]), batch["occupied_rows"],
-                                                     logits.dim() == 2, device)
+            found["occupied_logits"] = self._occupied_logits(logits, batch, device)
         if "depth_prob" in self.needs:
             found.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"])
         if self.needs & {*RENDERINGS, *POINT_INPUTS}:
@@ -161,6 +169,15 @@ class LossComputer:
         shape = (int(batch["images"].shape[0]), *self.render_cfg.grid.shape)
         grid = values.new_zeros((int(np.prod(shape)), *values.shape[1:]))
         return grid.index_copy(0, batch["footprint_rows"], values).reshape(*shape, *values.shape[1:])
+
+    def _occupied_logits(self, logits: torch.Tensor, batch: dict, device) -> torch.Tensor:
+        """The logits [K', 17] at the batch's "occupied_rows" [K']: from the footprint's table [K, 17] (at the
+        batch's ascending "footprint_rows", which hold them), given at those rows by the model, or picked from the
+        grids [B, X, Y, Z, 17]."""
+        rows = batch["occupied_rows"].to(device)
+        if "footprint_rows" in batch and logits.dim() == 2:
+            return logits[torch.searchsorted(batch["footprint_rows"], rows)]
+        return self._at_rows(logits.reshape(-1, logits.shape[-1]), rows, logits.dim() == 2, device)
 
     @staticmethod
     def _at_rows(values: torch.Tensor, rows: torch.Tensor | None, given: bool, device) -> torch.Tensor:
