@@ -116,3 +116,27 @@ def test_ray_builder_drops_exactly_the_rays_whose_sight_a_box_blocks(fixture_wor
                    for t, j in index.neighbours(position, horizon))
     # cached masks give the same rays again (exact: copies)
     np.testing.assert_array_equal(sight.rays(position).depths, kept.depths)
+
+
+def test_ray_builder_keeps_its_sight_results_within_its_byte_budget(fixture_world, index, monkeypatch):
+    """Line-of-sight masks, free-stretch ends and near-point masks are computed once per keyframe pair and kept
+    while they fit ``sight_bytes`` (the least recently used dropped first): a second pass over every keyframe
+    recomputes nothing under the default budget, everything under a budget of one byte, with the same rays."""
+    import occflownet.data.rays as rays_module
+
+    calls = []
+    blocked = rays_module.blocked_by_boxes
+    monkeypatch.setattr(rays_module, "blocked_by_boxes", lambda *a: calls.append(1) or blocked(*a))
+    config = RayConfig(horizon=1, beyond_grid=True, box_line_of_sight=True, free_stretch="points")
+    positions = range(len(index))
+    for budget, recomputed in ((rays_module.SIGHT_CACHE_BYTES, False), (1, True)):
+        builder = RayBuilder(index, fixture_world.root, config, sight_bytes=budget)
+        first = [(builder.rays(p), builder.free_rays(p)) for p in positions]
+        calls.clear()
+        second = [(builder.rays(p), builder.free_rays(p)) for p in positions]
+        assert bool(calls) == recomputed
+        assert len(builder._sight) == 1 if recomputed else builder._sight_total <= budget
+        for (a, fa), (b, fb) in zip(first, second):
+            np.testing.assert_array_equal(a.depths, b.depths)
+            np.testing.assert_array_equal(a.free_ends, b.free_ends)
+            np.testing.assert_array_equal(fa.directions, fb.directions)

@@ -1,7 +1,7 @@
 """Data-reader figures on a prepared nuScenes-format root: index load time, rays per keyframe, ray build time.
 
     python -m benchmarks.perf.bench_data --dataroot DIR [--version V] [--horizon 3] [--samples 20] [--repeat 3]
-        [--jsonl PATH]
+        [--recipes quickstart,recommended] [--split train] [--jsonl PATH]
 
 Run ``occflownet prepare --dataroot DIR`` first. For each of up to ``--samples`` keyframes (evenly spread over the
 index) the rays of t ∈ [-O, O] are built (a) cold: no per-frame cache, every sweep of the window is loaded and
@@ -9,7 +9,9 @@ projected; (b) sequential: keyframes in scene order with the default per-frame c
 sees; a shuffled training loader is closer to cold). Prints the index load time, rays and frames per keyframe and
 best-of-``--repeat`` medians of the ray build (the machine may be shared), with the load average and the float32
 matmul rate (appended to ``--jsonl``); then, per t, the share of ray endpoints whose Occ3D voxel holds the ray's
-label.
+label. With ``--recipes``: per recipe, the training loader's own sample (``train.dataset.TrainingSamples``, what one
+data worker builds for a step: images, rays, labels) over every keyframe of ``--split``, after one pass that fills
+its caches, in a shuffled order, ``--repeat`` passes: the mean ms a sample (what a worker of a long run spends).
 """
 from __future__ import annotations
 
@@ -33,9 +35,15 @@ def main() -> None:
     p.add_argument("--horizon", type=int, default=3)
     p.add_argument("--samples", type=int, default=20)
     p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--recipes", default="", help="comma-separated recipe names: time their training samples instead")
+    p.add_argument("--split", default="train", help="split of the training samples (--recipes)")
     add_jsonl_option(p)
     args = p.parse_args()
     results = Results("bench_data", args.jsonl)
+    if args.recipes:
+        for name in args.recipes.split(","):
+            training_samples(name, args, results)
+        return
 
     t = time.perf_counter()
     index = load_index(args.dataroot, args.version)
@@ -82,6 +90,29 @@ def main() -> None:
                  "cold_all_frames_ms": min(cold_full) * 1e3 if cold_full else None,
                  "sequential_ms": min(sequential) * 1e3}, "\n".join(lines))
     agreement(index, args.dataroot, config, positions)
+
+
+def training_samples(recipe: str, args, results: Results) -> None:
+    """Mean ms of a training sample of ``recipe`` on the split's keyframes, caches filled, in shuffled order."""
+    from occflownet.train import loop
+    from occflownet.train.dataset import TrainingSamples
+    from occflownet.train.recipe import TrainConfig
+
+    cfg = TrainConfig.from_recipe(recipe, dataroot=args.dataroot, split=args.split, out="unused", num_workers=0)
+    index, positions, flows = loop._training_data(cfg)
+    samples = TrainingSamples(cfg.dataroot, index, positions, cfg, flows)
+    for i in range(len(samples)):                                  # the first pass fills the caches
+        samples[(i, 0)]
+    passes = []
+    for step in range(1, args.repeat + 1):
+        t = time.perf_counter()
+        for i in np.random.default_rng(step).permutation(len(samples)):
+            samples[(int(i), step)]
+        passes.append((time.perf_counter() - t) / len(samples))
+    results.add({"dataroot": args.dataroot, "recipe": recipe, "samples": len(samples),
+                 "sample_ms": statistics.mean(passes) * 1e3},
+                f"{recipe}: a training sample {statistics.mean(passes) * 1e3:.1f} ms (mean over {len(samples)} "
+                f"keyframes of split {args.split}, caches filled, {args.repeat} shuffled passes)")
 
 
 def agreement(index, dataroot, config: RayConfig, positions) -> None:

@@ -39,6 +39,11 @@ from occflownet.data.tables import DatasetError
 from occflownet.geometry import invert, transform_points
 
 EGO_VEHICLE_RAW_LABEL = 31  # nuScenes-lidarseg 'vehicle.ego': returns from the recording car itself
+# Bytes of the per-keyframe results a RayBuilder keeps (line-of-sight masks, free-stretch ends, near-point masks;
+# about 1 MB a keyframe pair, most of it the 640 kB near-point mask): enough for every keyframe pair of a world of
+# about a hundred keyframes at O = 0 and a dozen at O = 3 (the quickstart's and the fitting worlds), where samples
+# drawn at random otherwise recompute them at nearly every step (tens of ms a keyframe).
+SIGHT_CACHE_BYTES = 128 * 1024 * 1024
 
 
 @dataclass(frozen=True)
@@ -210,17 +215,18 @@ class RayBuilder:
     """Builds the rays of a keyframe and its temporal neighbours from a SampleIndex (per-frame hits cached)."""
 
     def __init__(self, index, dataroot, config: RayConfig = RayConfig(), cache_size: int = 16,
-                 sight_frames: int | None = None):
-        """``cache_size``: frames whose hits are kept (about 2 MB each for a nuScenes-size sweep); ``sight_frames``:
-        keyframes whose sight masks, free-stretch ends and near-point masks are kept (each up to 4 · (2O + 1)
-        entries, a near-point mask 640 kB; default ``cache_size``)."""
+                 sight_bytes: int = SIGHT_CACHE_BYTES):
+        """``cache_size``: frames whose hits are kept (about 2 MB each for a nuScenes-size sweep); ``sight_bytes``:
+        the bytes of line-of-sight masks, free-stretch ends and near-point masks kept, the least recently used
+        dropped first (4 entries per keyframe pair, a near-point mask 640 kB)."""
         self.index = index
         self.dataroot = dataroot
         self.config = config
         self.cache_size = cache_size
-        self.sight_frames = cache_size if sight_frames is None else sight_frames
+        self.sight_bytes = sight_bytes
         self._cache: OrderedDict[int, FrameHits] = OrderedDict()
-        self._sight: OrderedDict[tuple, object] = OrderedDict()   # sight masks, free-stretch ends, near points
+        self._sight: OrderedDict[tuple, tuple[object, int]] = OrderedDict()   # (result, its bytes)
+        self._sight_total = 0
 
     def frame(self, position: int) -> FrameHits:
         """The (cached) global-frame hits of keyframe ``position``."""
@@ -298,15 +304,18 @@ class RayBuilder:
         return self._cached(("near", position, j), compute)
 
     def _cached(self, key, compute):
-        """``compute()``, remembered under ``key`` for the last few keyframes (line-of-sight masks, free-stretch
-        ends and near-point masks are fixed per keyframe pair and cost tens of ms a frame to recompute; four kinds
-        of key)."""
+        """``compute()``, remembered under ``key`` while the results kept stay within ``sight_bytes`` (line-of-sight
+        masks, free-stretch ends and near-point masks are fixed per keyframe pair and cost tens of ms a frame to
+        recompute; four kinds of key); the newest result is always kept."""
         if key not in self._sight:
-            self._sight[key] = compute()
-            while len(self._sight) > 4 * (2 * self.config.horizon + 1) * max(self.sight_frames, 1):
-                self._sight.popitem(last=False)
+            value = compute()
+            size = sum(a.nbytes for a in (value if isinstance(value, list) else [value]))
+            self._sight[key] = (value, size)
+            self._sight_total += size
+            while self._sight_total > self.sight_bytes and len(self._sight) > 1:
+                self._sight_total -= self._sight.popitem(last=False)[1][1]
         self._sight.move_to_end(key)
-        return self._sight[key]
+        return self._sight[key][0]
 
     def sight_boxes(self, position: int, j: int) -> EgoBoxes:
         """The boxes a ray of keyframe ``j`` (rendered for keyframe ``position``) must not pass through, in the

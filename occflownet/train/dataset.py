@@ -63,8 +63,7 @@ class TrainingSamples(Dataset):
                             free_space=FreeSpaceConfig() if cfg.free_space else None,
                             beyond_grid=cfg.free_beyond_grid, box_line_of_sight=cfg.box_line_of_sight,
                             free_stretch=cfg.free_stretch)
-        self.rays = RayBuilder(index, dataroot, ray_cfg, cache_size=max(RAY_CACHE_FRAMES, 2 * cfg.horizon + 2),
-                               sight_frames=2 * cfg.horizon + 2)
+        self.rays = RayBuilder(index, dataroot, ray_cfg, cache_size=max(RAY_CACHE_FRAMES, 2 * cfg.horizon + 2))
 
     def __len__(self) -> int:
         return len(self.positions)
