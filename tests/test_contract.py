@@ -345,3 +345,22 @@ def test_resize_rgb_copies_shrinks_by_area_and_enlarges_linearly():
     assert not np.array_equal(big, cv2.resize(rgb, (100, 75), interpolation=cv2.INTER_AREA))
     with pytest.raises(ValueError, match="out has shape"):
         resize_rgb(rgb, (20, 15), np.zeros((15, 21, 3), np.uint8))
+
+
+def test_decoded_images_are_rgb_contiguous_and_writable():
+    """decode_rgb gives RGB (a red / green / blue pixel of a lossless PNG reads back as such), as a C-contiguous,
+    writable uint8 array of its own, also from a JPEG at a reduced scale."""
+    import cv2
+
+    rgb = np.zeros((4, 6, 3), dtype=np.uint8)
+    rgb[0, 0], rgb[1, 2], rgb[3, 5] = (255, 0, 0), (0, 255, 0), (0, 0, 255)
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(rgb[:, :, ::-1]))        # OpenCV writes BGR
+    out = contract.decode_rgb(png.tobytes())
+    assert ok and np.array_equal(out, rgb)
+    assert out.dtype == np.uint8 and out.flags["C_CONTIGUOUS"] and out.flags["WRITEABLE"] and out.base is None
+    blue = np.zeros((64, 96, 3), dtype=np.uint8)
+    blue[..., 2] = 200
+    ok, jpeg = cv2.imencode(".jpg", np.ascontiguousarray(blue[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    small = contract.decode_rgb(jpeg.tobytes(), 2)
+    assert small.shape == (32, 48, 3) and small.flags["C_CONTIGUOUS"]
+    assert np.abs(small.astype(int) - (0, 0, 200)).max() <= 3

@@ -17,7 +17,8 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
   checkpoint by this script) fed whole images (the graph-only ratio against ``today, whole images``), fed
   today's inputs (the graph-only ratio at the scale the inference paths decode) and fed at its own reduced scale
   (with ``--baseline-commit``: the ``decode_reduction`` of that checkout, asked of it; else today's), the six
-  decoded one after another as a sequential ``predict`` does (the end-to-end ratio a user sees against ``today``);
+  decoded one after another as a sequential ``predict`` does, by that commit's own ``decode_rgb`` (the end-to-end
+  ratio a user sees against ``today``);
 - with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations; 7-bit
   weights, and with ``int8-full`` 8-bit weights for CPUs with VNNI/AMX) and fp16 graphs, with their agreement with
   fp32 (the first row); ``--openvino`` adds today's fp32 and int8 graphs run by OpenVINO CPU (f32 precision hint),
@@ -80,17 +81,20 @@ print(decode_reduction(image_header(open(jpeg, "rb").read()), (int(h), int(w))))
 """
 
 
-def one_by_one_inputs(reduction: int):
+def one_by_one_inputs(reduction: int, decode_rgb=None):
     """(ModelInputs of the real frame's six JPEGs decoded at 1/``reduction``, decode): ``decode()`` → uint8
-    [6, H, W, 3] decodes the JPEGs held in memory one after another, as a sequential ``predict`` does; the inputs
-    are built by the one feeds function (``occflownet.runtime.frame_inputs``) with that reduction's intrinsics."""
+    [6, H, W, 3] decodes the JPEGs held in memory one after another, as a sequential ``predict`` does, with
+    ``decode_rgb`` (a baseline commit's own, :func:`commit_decoder`; default today's); the inputs are built by the
+    one feeds function (``occflownet.runtime.frame_inputs``) with that reduction's intrinsics."""
     from occflownet.contract import image_header, load_calibration
-    from occflownet.predict import decode_image, find_camera_images
+    from occflownet.predict import find_camera_images
     from occflownet.runtime import frame_inputs
 
+    if decode_rgb is None:
+        from occflownet.contract import decode_rgb
     blobs = [p.read_bytes() for p in find_camera_images(FRAME).values()]
     header = image_header(blobs[0])
-    decode = lambda: np.stack([decode_image(b, "image", reduction) for b in blobs])  # noqa: E731
+    decode = lambda: np.stack([decode_rgb(b, reduction) for b in blobs])  # noqa: E731
     inputs = frame_inputs(decode(), load_calibration(FRAME / "calib.json"),
                           sizes=[(header.width, header.height)] * len(blobs), reductions=[reduction] * len(blobs))
     return inputs, decode
@@ -160,6 +164,26 @@ def bench_model(name: str, occupied: float, checkpoint: str | None, inputs):
         model.decoder.sigma_head[-1].bias += torch.logit(torch.tensor(model.cfg.threshold)) - cut
         model.decoder.semantic_head[-1].bias.zero_()
     return model
+
+
+def commit_decoder(rev: str):
+    """``rev``'s own ``decode_rgb``: its ``occflownet/contract/images.py`` (which imports no other module of the
+    package) loaded from git as a module of its own, so that the baseline's end-to-end row decodes as that commit's
+    inference paths did; None where the file is not there at ``rev`` (today's decoder is used then)."""
+    import importlib.util
+
+    proc = subprocess.run(["git", "show", f"{rev}:occflownet/contract/images.py"], cwd=ROOT, capture_output=True,
+                          text=True)
+    if proc.returncode != 0:
+        return None
+    with tempfile.TemporaryDirectory() as folder:
+        source = Path(folder) / "baseline_images.py"
+        source.write_text(proc.stdout)
+        spec = importlib.util.spec_from_file_location("_baseline_contract_images", source)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module                    # dataclasses look their module up while they are made
+        spec.loader.exec_module(module)
+    return module.decode_rgb
 
 
 def export_baseline_commit(rev: str, checkpoint: Path, out: Path, input_size: tuple[int, int]) -> int | None:
@@ -309,7 +333,10 @@ def build_graphs(name: str, args, model, whole, reduced, one_by_one, workdir: Pa
             save_checkpoint(ckpt, model, model.cfg)
             n = export_baseline_commit(args.baseline_commit, ckpt, base, model.cfg.input_size)
             if n is not None:       # fed as that commit's own paths decode the frame, one camera after another
-                one_by_one = one_by_one_inputs(n)
+                decoder = commit_decoder(args.baseline_commit)
+                which = "its own decode_rgb" if decoder else "today's decode_rgb (none at that commit)"
+                print(f"{name}: the baseline's one-by-one row decodes with {which}")
+                one_by_one = one_by_one_inputs(n, decoder)
         label = f"baseline {args.baseline_commit or base.name}"
         (w, h) = one_by_one[0].image_size
         graphs += [(f"{label}, whole images", base, whole), (f"{label}, today's scale", base, reduced),
