@@ -39,10 +39,11 @@ from occflownet.data.tables import DatasetError
 from occflownet.geometry import invert, transform_points
 
 EGO_VEHICLE_RAW_LABEL = 31  # nuScenes-lidarseg 'vehicle.ego': returns from the recording car itself
-# Bytes of the per-keyframe results a RayBuilder keeps (line-of-sight masks, free-stretch ends, near-point masks;
-# about 1 MB a keyframe pair, most of it the 640 kB near-point mask): enough for every keyframe pair of a world of
-# about a hundred keyframes at O = 0 and a dozen at O = 3 (the quickstart's and the fitting worlds), where samples
-# drawn at random otherwise recompute them at nearly every step (tens of ms a keyframe).
+# Bytes of the per-keyframe results a RayBuilder keeps (line-of-sight masks, free-stretch ends, near-point masks,
+# most of it the 640 kB near-point masks): on the quickstart's world about 0.75 MB a keyframe at O = 0 and 3 MB at
+# O = 3, so every keyframe of a world of about 170 keyframes at O = 0 and of about 40 at O = 3 (the quickstart's and
+# the fitting worlds), where samples drawn at random otherwise recompute them at nearly every step (tens of ms a
+# keyframe pair).
 SIGHT_CACHE_BYTES = 128 * 1024 * 1024
 
 
