@@ -28,7 +28,7 @@ from occflownet.data.loaders import load_occupancy
 from occflownet.data.rays import RayBuilder, RayConfig, endpoint_classes
 
 
-def main() -> None:
+def options() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--dataroot", required=True)
     p.add_argument("--version", default=None)
@@ -38,7 +38,11 @@ def main() -> None:
     p.add_argument("--recipes", default="", help="comma-separated recipe names: time their training samples instead")
     p.add_argument("--split", default="train", help="split of the training samples (--recipes)")
     add_jsonl_option(p)
-    args = p.parse_args()
+    return p.parse_args()
+
+
+def main() -> None:
+    args = options()
     results = Results("bench_data", args.jsonl)
     if args.recipes:
         for name in args.recipes.split(","):
