@@ -14,6 +14,7 @@ from occflownet.train.losses import (LossTerm, free_prior_loss, free_space_loss,
                                      loss_terms, point_density_loss, step_data, render_depth_loss,
                                      render_semantics_loss, voxel_density_loss, voxel_semantics_loss, voxel_targets)
 from occflownet.train.recipe import TrainConfig
+from occflownet.train.recipes import recipe
 
 LOG17 = math.log(NUM_CLASSES)
 
@@ -386,8 +387,7 @@ FOOTPRINT_OPTIONS = {   # the recommended rendering (docs/training.md; its free 
     "free_prior_weight": 2.0}
 
 
-QUICKSTART_OPTIONS = {**FOOTPRINT_OPTIONS, "supervision": "2d+3d", "voxel_mask": True, "horizon": 0,
-                      "dynamic_filter": False, "disocclusion": False, "loss_weighting": False}
+QUICKSTART_OPTIONS = dict(recipe("quickstart").settings)     # 3D labels in mask_camera and the current frame's rays
 
 
 @pytest.mark.parametrize("options", [{}, FOOTPRINT_OPTIONS, {"flow": True}, QUICKSTART_OPTIONS,
