@@ -84,7 +84,7 @@ print(decode_reduction(image_header(open(jpeg, "rb").read()), (int(h), int(w))))
 def one_by_one_inputs(reduction: int, decode_rgb=None):
     """(ModelInputs of the real frame's six JPEGs decoded at 1/``reduction``, decode): ``decode()`` → uint8
     [6, H, W, 3] decodes the JPEGs held in memory one after another, as a sequential ``predict`` does, with
-    ``decode_rgb`` (a baseline commit's own, :func:`commit_decoder`; default today's); the inputs are built by the
+    ``decode_rgb`` (a baseline commit's own, :func:`tree_decoder`; default today's); the inputs are built by the
     one feeds function (``occflownet.runtime.frame_inputs``) with that reduction's intrinsics."""
     from occflownet.contract import image_header, load_calibration
     from occflownet.predict import find_camera_images
@@ -166,30 +166,26 @@ def bench_model(name: str, occupied: float, checkpoint: str | None, inputs):
     return model
 
 
-def commit_decoder(rev: str):
-    """``rev``'s own ``decode_rgb``: its ``occflownet/contract/images.py`` (which imports no other module of the
-    package) loaded from git as a module of its own, so that the baseline's end-to-end row decodes as that commit's
-    inference paths did; None where the file is not there at ``rev`` (today's decoder is used then)."""
+def tree_decoder(tree: Path):
+    """The checkout ``tree``'s own ``decode_rgb``: its ``occflownet/contract/images.py`` (which imports no other
+    module of the package) loaded as a module of its own, so that the baseline's end-to-end row decodes as that
+    commit's inference paths did; None where the file is not there (today's decoder is used then)."""
     import importlib.util
 
-    proc = subprocess.run(["git", "show", f"{rev}:occflownet/contract/images.py"], cwd=ROOT, capture_output=True,
-                          text=True)
-    if proc.returncode != 0:
+    source = tree / "occflownet" / "contract" / "images.py"
+    if not source.is_file():
         return None
-    with tempfile.TemporaryDirectory() as folder:
-        source = Path(folder) / "baseline_images.py"
-        source.write_text(proc.stdout)
-        spec = importlib.util.spec_from_file_location("_baseline_contract_images", source)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module                    # dataclasses look their module up while they are made
-        spec.loader.exec_module(module)
+    spec = importlib.util.spec_from_file_location("_baseline_contract_images", source)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module                        # dataclasses look their module up while they are made
+    spec.loader.exec_module(module)
     return module.decode_rgb
 
 
-def export_baseline_commit(rev: str, checkpoint: Path, out: Path, input_size: tuple[int, int]) -> int | None:
-    """``rev``'s own exporter on ``checkpoint`` → ``out`` (``rev`` checked out by ``benchmarks.harness.worktree``),
-    and the scale 1/n ``rev``'s inference paths decode the real frame's JPEGs at for ``input_size`` (None without
-    the frame)."""
+def export_baseline_commit(rev: str, checkpoint: Path, out: Path, input_size: tuple[int, int]):
+    """``rev``'s own exporter on ``checkpoint`` → ``out`` (``rev`` checked out by ``benchmarks.harness.worktree``)
+    → (the scale 1/n ``rev``'s inference paths decode the real frame's JPEGs at for ``input_size``, ``rev``'s own
+    ``decode_rgb`` (:func:`tree_decoder`)), (None, None) without the frame."""
     with worktree(rev) as tree:
         proc = subprocess.run([sys.executable, "-c", _FOREIGN_EXPORT, str(tree), str(checkpoint), str(out)],
                               capture_output=True, text=True, cwd=tree)
@@ -197,10 +193,10 @@ def export_baseline_commit(rev: str, checkpoint: Path, out: Path, input_size: tu
             raise RuntimeError(f"export at {rev} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}")
         jpeg = FRAME / "CAM_FRONT.jpg"
         if not jpeg.is_file():
-            return None
+            return None, None
         proc = subprocess.run([sys.executable, "-c", _FOREIGN_REDUCTION, str(tree), str(jpeg), *map(str, input_size)],
                               capture_output=True, text=True, cwd=tree, check=True)
-        return int(proc.stdout.strip())
+        return int(proc.stdout.strip()), tree_decoder(tree)
 
 
 def profile(session_path: Path, inputs, runs: int, threads: int) -> tuple[dict, dict, float]:
@@ -331,9 +327,8 @@ def build_graphs(name: str, args, model, whole, reduced, one_by_one, workdir: Pa
         if args.baseline_commit:
             ckpt = workdir / f"{name}.pt"
             save_checkpoint(ckpt, model, model.cfg)
-            n = export_baseline_commit(args.baseline_commit, ckpt, base, model.cfg.input_size)
+            n, decoder = export_baseline_commit(args.baseline_commit, ckpt, base, model.cfg.input_size)
             if n is not None:       # fed as that commit's own paths decode the frame, one camera after another
-                decoder = commit_decoder(args.baseline_commit)
                 which = "its own decode_rgb" if decoder else "today's decode_rgb (none at that commit)"
                 print(f"{name}: the baseline's one-by-one row decodes with {which}")
                 one_by_one = one_by_one_inputs(n, decoder)
