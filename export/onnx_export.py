@@ -99,6 +99,20 @@ def example_inputs(cfg: ModelConfig, batch: int = 2):
             torch.from_numpy(T)[None].repeat(batch, 1, 1, 1))
 
 
+def nonzero_as_compress(x):
+    """The exporter's translation of ``torch.nonzero``: of a 1-D ``x`` [N] → int64 [K, 1], the positions 0 .. N − 1
+    kept where ``x`` is non-zero (ONNX ``Compress`` of a ``Range``), in ascending order as ``NonZero`` gives them;
+    onnxruntime's NonZero runs about twice as long (a slab's 64,000 σ of tiny: docs/results.md#inference). Other
+    ranks: ``NonZero`` transposed to torch's [K, rank]."""
+    from onnxscript import opset18 as op
+
+    if x.shape is None or len(x.shape) != 1:
+        return op.Transpose(op.NonZero(x), perm=[1, 0])
+    positions = op.Range(op.Constant(value_int=0), op.Squeeze(op.Shape(x)), op.Constant(value_int=1))
+    return op.Unsqueeze(op.Compress(positions, op.Cast(x, to=onnx.TensorProto.BOOL), axis=0),
+                        op.Constant(value_ints=[1]))
+
+
 def trace_to_onnx(module: torch.nn.Module, inputs: tuple, path: Path, input_names, output_names,
                   dynamic_shapes) -> onnx.ModelProto:
     """torch.onnx.export(dynamo=True) into ``path``, returned as a ModelProto (exporter chatter silenced)."""
@@ -111,7 +125,8 @@ def trace_to_onnx(module: torch.nn.Module, inputs: tuple, path: Path, input_name
             warnings.simplefilter("ignore")
             torch.onnx.export(module, inputs, str(path), dynamo=True, opset_version=OPSET, verbose=False,
                               input_names=list(input_names), output_names=list(output_names),
-                              dynamic_shapes=dynamic_shapes, external_data=False)
+                              dynamic_shapes=dynamic_shapes, external_data=False,
+                              custom_translation_table={torch.ops.aten.nonzero.default: nonzero_as_compress})
     finally:
         for lg, level in zip(loggers, levels):
             lg.setLevel(level)

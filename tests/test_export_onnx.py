@@ -129,13 +129,51 @@ def test_graph_is_standard_onnx_with_contract_v1_io(exported):
                       for n in proto.graph.node if n.op_type.startswith("Scatter"))
     # no scatter adds (onnxruntime's ScatterND(add) races across threads, its ScatterElements(add) is
     # single-threaded): the pooling sums by sorted segment sums and writes each trunk cell once; each slab of the
-    # per-voxel chain writes its skip features to their own rows and its labels to the NonZero rows of its occupied
+    # per-voxel chain writes its skip features to their own rows and its labels to the selected rows of its occupied
     # voxels: 1 + 2 per slab reduction-less ScatterND on unique indices
     cfg = model.cfg
     xc, yc, zc = cfg.trunk_grid
     per = yc * zc * cfg.decoder_stride ** 3
     slabs = -(-xc // slab_width(xc, per, model.decoder.widest))
     assert slabs > 1 and scatters == [("ScatterND", "none")] * (1 + 2 * slabs)
+
+
+class _Picks(torch.nn.Module):
+    """x [N], y [N, 3] → the positions of x's non-zero entries (torch.nonzero of a 1-D tensor) and y's ([K, 2])."""
+
+    def forward(self, x, y):
+        return torch.nonzero(x > 0.5).reshape(-1), torch.nonzero(y > 0.5)
+
+
+def test_nonzero_exports_as_compress_with_torchs_positions(tmp_path):
+    from onnx.reference import ReferenceEvaluator
+
+    x, y = torch.rand(50), torch.rand(40, 3)
+    n = torch.export.Dim("n", min=2, max=4096)
+    proto = onnx_export.trace_to_onnx(_Picks(), (x, y), tmp_path / "picks.onnx", ["x", "y"], ["rows", "cells"],
+                                      {"x": {0: n}, "y": {0: torch.export.Dim("m", min=2, max=4096)}})
+    ops = [node.op_type for node in proto.graph.node]
+    assert ops.count("Compress") == 1 and ops.count("NonZero") == 1          # 1-D: Compress; 2-D: NonZero
+    session = create_session(tmp_path / "picks.onnx", check_contract=False)
+    reference = ReferenceEvaluator(proto)
+    for size, fraction in [(50, 0.5), (3000, 0.1), (7, 0.0), (9, 1.0)]:
+        x = (torch.rand(size) < fraction).float()
+        y = torch.rand(size + 3, 3)
+        want = [t.numpy() for t in _Picks()(x, y)]
+        for got in (session.run(None, {"x": x.numpy(), "y": y.numpy()}),
+                    reference.run(None, {"x": x.numpy(), "y": y.numpy()})):
+            assert [g.dtype for g in got] == [np.int64, np.int64]
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_graph_selects_without_nonzero_and_ends_with_occupancy(exported):
+    path, _, _ = exported
+    nodes = list(onnx.load(str(path)).graph.node)
+    assert "NonZero" not in {n.op_type for n in nodes} and any(n.op_type == "Compress" for n in nodes)
+    # onnxruntime walks back from the last output node: occupancy's Concat last runs each slab's Φs after its σ
+    producer = {out: i for i, n in enumerate(nodes) for out in n.output}
+    assert producer["density"] < producer["occupancy"] == len(nodes) - 1
 
 
 def test_metadata(exported):

@@ -319,7 +319,11 @@ class VoxelDecoder(nn.Module):
             classes = torch.full_like(sigma, FREE, dtype=torch.uint8).index_put((occupied,), labels.to(torch.uint8))
             density.append(unblock(sigma.reshape(b, n, yc, zc, s ** 3), s))        # [B, n·s, Y, Z]
             occupancy.append(unblock(classes.reshape(b, n, yc, zc, s ** 3), s))
-        return torch.cat(occupancy, 1), torch.cat(density, 1)
+        # occupancy's Concat last in the graph: onnxruntime orders a graph by a depth-first walk back from its last
+        # output node, so each slab's Φs then runs right after its σ, while the slab's head input is still in the
+        # cache (density's Concat last ran every slab's σ first, then every slab's Φs: 1.06x slower on tiny)
+        density = torch.cat(density, 1)
+        return torch.cat(occupancy, 1), density
 
 
 class SlabRows:
