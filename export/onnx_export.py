@@ -2,7 +2,8 @@
 
 Pipeline (nothing is written to ``out`` unless every step passes):
 1. ``torch.onnx.export(dynamo=True)`` of :class:`~occflownet.model.InferenceGraph` (preprocessing, backbone, lift,
-   decoder, fusion) with dynamic batch, height and width, opset 18. The dynamo exporter writes the voxel pooling
+   decoder, fusion) with dynamic batch, height and width, opset 18, ``torch.nonzero`` of a 1-D tensor written as
+   ``Compress`` (:func:`nonzero_as_compress`). The dynamo exporter writes the voxel pooling
    (``index_add``) as ``ScatterND(reduction="add")``; the TorchScript exporter's reduction-less ScatterND is wrong
    for repeated voxel indices.
 2. Clean-up (exporter node annotations dropped), every ``ScatterND(reduction="add")`` rewritten as an equivalent
