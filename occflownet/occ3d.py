@@ -43,8 +43,13 @@ class Grid:
     def cells_of(self, points):
         """:meth:`index_of`'s rule for a torch tensor of ego-frame points [..., 3], before the conversion to
         integers: floor((p − lower) / voxel_size) in the tensor's own float dtype (a non-finite point stays
-        non-finite, so range checks on it fail instead of wrapping around)."""
-        return ((points - points.new_tensor(self.lower)) / self.voxel_size).floor()
+        non-finite, so range checks on it fail instead of wrapping around). The [3] offset is subtracted from rows of
+        the last two axes merged ([..., n·3] minus the offset repeated n times: the same values), because
+        onnxruntime broadcasts a [3] vector over [..., 3] three numbers at a time (0.23 ms on tiny's frustum against
+        0.03 ms)."""
+        n = points.shape[-2] if points.dim() > 1 else 1
+        rows = points.reshape(tuple(points.shape[:-2]) + (n * 3,))
+        return ((rows - rows.new_tensor(tuple(self.lower) * n)) / self.voxel_size).floor().reshape(points.shape)
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """Boolean [...]: whether ego-frame points [..., 3] lie inside the grid's range."""

@@ -35,6 +35,21 @@ def test_index_of_torch_tensors_follow_the_same_rule():
     assert np.array_equal(GRID.index_of(torch.tensor(edges, dtype=torch.float64)).numpy(), expected)
 
 
+
+def test_cells_of_equals_the_plain_rule_on_any_shape():
+    # cells_of merges the last two axes to subtract the lower corner (a broadcast onnxruntime runs faster); the
+    # values must be those of the plain per-point rule, bit for bit, non-finite points included
+    gen = torch.Generator().manual_seed(0)
+    lower = torch.tensor(GRID.lower)
+    for shape in [(3,), (1, 3), (7, 3), (2, 5, 4, 3), (0, 3)]:
+        points = (torch.rand(shape, generator=gen) - 0.5) * 100
+        if points.numel() > 6:
+            points.view(-1)[[1, 5]] = torch.tensor([float("inf"), float("nan")])
+        got = GRID.cells_of(points)
+        want = ((points - lower) / GRID.voxel_size).floor()
+        assert got.shape == points.shape
+        assert torch.equal(torch.nan_to_num(got, nan=-7.0), torch.nan_to_num(want, nan=-7.0))
+
 def test_class_table():
     assert len(occ3d.CLASS_NAMES) == 18 and occ3d.CLASS_NAMES[occ3d.FREE] == "free"
     assert occ3d.CLASS_COLORS.shape == (18, 3)

@@ -66,9 +66,12 @@ def frustum_points(feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor, dept
     ray = [k_inv[..., r, 0] * u + k_inv[..., r, 1] * v + k_inv[..., r, 2] for r in range(3)]  # 3 × [B,V,h,w]
     rot = cam2ego[:, :, None, None, :3, :3]
     direction = [rot[..., r, 0] * ray[0] + rot[..., r, 1] * ray[1] + rot[..., r, 2] * ray[2] for r in range(3)]
-    origin = cam2ego[:, :, None, None, None, :3, 3]                                 # [B, V, 1, 1, 1, 3]
-    direction = torch.stack(direction, dim=-1)[:, :, None]                          # [B, V, 1, h, w, 3]
-    return origin + depths[:, None, None, None] * direction                         # [B, V, D, h, w, 3]
+    # the last two axes merged ([w·3], the origin repeated w times): onnxruntime broadcasts a trailing [3] vector
+    # three numbers at a time; the sums are the same
+    b, v = cam2ego.shape[:2]
+    origin = cam2ego[:, :, :3, 3].repeat(1, 1, w).reshape(b, v, 1, 1, w * 3)        # [B, V, 1, 1, w·3]
+    direction = torch.stack(direction, dim=-1).reshape(b, v, 1, h, w * 3)          # [B, V, 1, h, w·3]
+    return (origin + depths[:, None, None] * direction).reshape(b, v, -1, h, w, 3)  # [B, V, D, h, w, 3]
 
 
 def block_layout_rows(index: torch.Tensor, batch: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -106,8 +109,10 @@ def points_inside(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     index int64 [K, 3]: their voxels). The voxel is ``GRID.index_of``'s (``GRID.cells_of``, in float32), and a
     point is inside when all three lie in [0, shape): the points :func:`voxel_rows` calls valid (a non-finite
     point fails the comparisons). Only the kept points are turned into integers."""
-    cell = GRID.cells_of(points)                                                   # [B, ..., 3] float
-    inside = torch.all((cell >= 0) & (cell < cell.new_tensor(GRID.shape)), dim=-1)
+    cell = GRID.cells_of(points)                                                   # [B, ..., n, 3] float
+    rows = cell.reshape(tuple(cell.shape[:-2]) + (-1,))    # [..., n·3]: no [3]-vector broadcast (GRID.cells_of)
+    below = rows < rows.new_tensor(tuple(GRID.shape) * cell.shape[-2])
+    inside = torch.all(((rows >= 0) & below).reshape(cell.shape), dim=-1)
     keep = torch.nonzero(inside.reshape(-1)).reshape(-1)                           # [K]
     return keep, torch.index_select(cell.reshape(-1, 3), 0, keep).to(torch.int64)
 
@@ -126,9 +131,10 @@ POOL_BLOCK = 16
 class BlockedPrefix:
     """Prefix sums of sorted values float32 [K', C] (K' a multiple of POOL_BLOCK, the tail zero-padded) that stay
     accurate over hundreds of thousands of rows: float32 cumulative sums within each block of POOL_BLOCK rows
-    (``local``), and the sums of all earlier blocks in float64 (``offsets``, centred on the mean block total
-    ``mean`` so that even a runtime that keeps float64 as float32 sums small numbers). ``at(pos)`` is the sum of
-    rows 0 .. pos, in float64."""
+    (``local``), and the sums of all earlier blocks in float64 (``offsets``, one row per block: a cumulative sum of
+    the block totals centred on their mean ``mean``, so that even a runtime that keeps float64 as float32 sums small
+    numbers, plus that mean times the number of earlier blocks). ``at(pos)`` is the sum of rows 0 .. pos, in
+    float64."""
 
     def __init__(self, values: torch.Tensor):
         c = values.shape[-1]
@@ -136,14 +142,15 @@ class BlockedPrefix:
         totals = self.local[:, -1].to(torch.float64)                               # [K'/L, C]
         self.mean = totals.mean(0)
         centred = totals - self.mean
-        self.offsets = torch.cumsum(centred, 0) - centred                         # exclusive, centred
+        index = torch.arange(totals.shape[0], device=values.device)[:, None].to(torch.float64)
+        # the sums of all earlier blocks: exclusive centred prefix + mean per block, per block (not per row)
+        self.offsets = (torch.cumsum(centred, 0) - centred) + index * self.mean   # [K'/L, C] float64
         self.local = self.local.reshape(-1, c)
 
     def at(self, pos: torch.Tensor) -> torch.Tensor:
         """Inclusive prefix sums float64 [U, C] at positions int64 [U]."""
         block = pos // POOL_BLOCK              # integer ops in ONNX (a float floor division is lost in fp16)
-        return (torch.index_select(self.offsets, 0, block) + block[:, None].to(torch.float64) * self.mean
-                + torch.index_select(self.local, 0, pos).to(torch.float64))
+        return torch.index_select(self.offsets, 0, block) + torch.index_select(self.local, 0, pos).to(torch.float64)
 
     def run_sums(self, ends: torch.Tensor) -> torch.Tensor:
         """The sums over runs of rows ending at ``ends`` int64 [U] (:func:`run_ends`) → float32 [U, C]: the
