@@ -154,9 +154,10 @@ class BlockedPrefix:
 
     def run_sums(self, ends: torch.Tensor) -> torch.Tensor:
         """The sums over runs of rows ending at ``ends`` int64 [U] (:func:`run_ends`) → float32 [U, C]: the
-        difference of the prefix across each run, in float64, rounded to float32 once."""
+        difference of the prefix across each run, in float64, rounded to float32 once (and only then joined: a
+        float64 concatenation of base's 134,000 × 32 trunk sums took 25–33 ms)."""
         at = self.at(ends)
-        return (at - torch.cat([torch.zeros_like(at[:1]), at[:-1]])).to(torch.float32)
+        return torch.cat([at[:1].to(torch.float32), (at[1:] - at[:-1]).to(torch.float32)])
 
 
 def scatter_pool(features: torch.Tensor, rows: torch.Tensor, num_rows) -> torch.Tensor:
