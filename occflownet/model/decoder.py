@@ -300,8 +300,8 @@ class VoxelDecoder(nn.Module):
         (:func:`slab_width` x-planes of every sample, static shapes), in block layout, so its 640,000-row
         intermediates are never written out whole and no voxel index changes layout: a slab reads its skip
         features as the rows of its planes (:class:`SlabRows`), picks its occupied rows where its σ
-        lies (``torch.nonzero``, exported as Compress; Gather; Φs; ScatterND of unique rows, no reduction), and turns σ and its classes into grid
-        layout once, as a transpose of the slab."""
+        lies (``torch.nonzero``, exported as Compress; Gather; Φs; ScatterND of unique rows, no reduction), and
+        turns σ and its classes into grid layout once, as a transpose of the slab."""
         b, xc, yc, zc, _ = trunk.shape
         s = self.stride
         per = yc * zc * s ** 3                                                     # voxels per x-plane and sample
