@@ -35,7 +35,6 @@ def test_index_of_torch_tensors_follow_the_same_rule():
     assert np.array_equal(GRID.index_of(torch.tensor(edges, dtype=torch.float64)).numpy(), expected)
 
 
-
 def test_cells_of_equals_the_plain_rule_on_any_shape():
     # cells_of merges the last two axes to subtract the lower corner (a broadcast onnxruntime runs faster); the
     # values must be those of the plain per-point rule, bit for bit, non-finite points included
@@ -49,6 +48,7 @@ def test_cells_of_equals_the_plain_rule_on_any_shape():
         want = ((points - lower) / GRID.voxel_size).floor()
         assert got.shape == points.shape
         assert torch.equal(torch.nan_to_num(got, nan=-7.0), torch.nan_to_num(want, nan=-7.0))
+
 
 def test_class_table():
     assert len(occ3d.CLASS_NAMES) == 18 and occ3d.CLASS_NAMES[occ3d.FREE] == "free"

@@ -17,8 +17,8 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
   checkpoint by this script) fed whole images (the graph-only ratio against ``today, whole images``), fed
   today's inputs (the graph-only ratio at the scale the inference paths decode) and fed at its own reduced scale
   (with ``--baseline-commit``: the ``decode_reduction`` of that checkout, asked of it; else today's), the six
-  decoded one after another as a sequential ``predict`` does, with ``--baseline-commit`` by that commit's own
-  ``decode_rgb`` (else today's) (the end-to-end ratio a user sees against ``today``);
+  decoded one after another as a sequential ``predict`` does — with ``--baseline-commit`` by that commit's own
+  ``decode_rgb``, else by today's (the end-to-end ratio a user sees against ``today``);
 - with ``--variants``: today's int8 (QDQ, ``export/variants.py``, calibrated on the real frame's variations; 7-bit
   weights, and with ``int8-full`` 8-bit weights for CPUs with VNNI/AMX) and fp16 graphs, with their agreement with
   fp32 (the first row); ``--openvino`` adds today's fp32 and int8 graphs run by OpenVINO CPU (f32 precision hint),

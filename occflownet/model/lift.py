@@ -132,7 +132,7 @@ class BlockedPrefix:
     """Prefix sums of sorted values float32 [K', C] (K' a multiple of POOL_BLOCK, the tail zero-padded) that stay
     accurate over hundreds of thousands of rows: float32 cumulative sums within each block of POOL_BLOCK rows
     (``local``), and the sums of all earlier blocks in float64 (``offsets``, one row per block: a cumulative sum of
-    the block totals centred on their mean ``mean``, so that even a runtime that keeps float64 as float32 sums small
+    the block totals centred on their mean, so that even a runtime that keeps float64 as float32 sums small
     numbers, plus that mean times the number of earlier blocks). ``at(pos)`` is the sum of rows 0 .. pos, in
     float64."""
 
@@ -140,11 +140,11 @@ class BlockedPrefix:
         c = values.shape[-1]
         self.local = torch.cumsum(values.reshape(-1, POOL_BLOCK, c), 1)            # [K'/L, L, C] float32
         totals = self.local[:, -1].to(torch.float64)                               # [K'/L, C]
-        self.mean = totals.mean(0)
-        centred = totals - self.mean
+        mean = totals.mean(0)
+        centred = totals - mean
         index = torch.arange(totals.shape[0], device=values.device)[:, None].to(torch.float64)
         # the sums of all earlier blocks: exclusive centred prefix + mean per block, per block (not per row)
-        self.offsets = (torch.cumsum(centred, 0) - centred) + index * self.mean   # [K'/L, C] float64
+        self.offsets = (torch.cumsum(centred, 0) - centred) + index * mean        # [K'/L, C] float64
         self.local = self.local.reshape(-1, c)
 
     def at(self, pos: torch.Tensor) -> torch.Tensor:
