@@ -28,7 +28,10 @@ so machine load hits all alike, and is reported as p50 and as a ratio to the fir
 costliest nodes; for OpenVINO's rows its own per-layer counters, by layer type and kernel), so a loss shows where it
 comes from; for a quantised graph also the float kernel time left outside its int8 kernels and the speed-up over
 the first graph that this allows at most (as if every int8 kernel took no time). A 2048³ fp32 matmul (torch) is
-measured at the start and the end of the run as the machine's reference; ``--torch`` also times torch eager
+measured at the start and the end of the run as the machine's reference: the model's FLOPs (torch's counter, and the
+image network's share) at that rate (the higher of the start's and one measured after the timings) are the floor of
+an fp32 graph that does them no faster than the matmul, and each baseline row's p50 over that floor the most such a
+graph can gain on this machine; ``--torch`` also times torch eager
 (``model.inference``). JPEG decoding of the six files (whole or at reduced scale, as each row is fed) is timed
 with each inference in the same loop ("with decoding": the end-to-end figure of predict, the server and the C++
 runner).
@@ -136,15 +139,17 @@ def _timed(fn) -> float:
     return time.perf_counter() - t
 
 
-def model_flops(model, inputs) -> float:
-    """FLOPs of one torch run of ``model`` on ``inputs`` (ModelInputs)."""
+def model_flops(model, inputs) -> tuple[float, float]:
+    """(FLOPs of one torch run of ``model`` on ``inputs`` (ModelInputs), those of its image network alone)."""
     from torch.utils.flop_counter import FlopCounterMode
 
     from occflownet.runtime import TorchPredictor
 
     with FlopCounterMode(display=False) as counter:
         TorchPredictor(model)(inputs)
-    return float(counter.get_total_flops())
+    counts = counter.get_flop_counts()
+    backbone = sum(counts.get(type(model.backbone).__name__, {}).values())
+    return float(counter.get_total_flops()), float(backbone)
 
 
 def bench_model(name: str, occupied: float, checkpoint: str | None, inputs):
@@ -371,9 +376,16 @@ def bench_preset(name: str, args, whole, reduced, one_by_one, workdir: Path, thr
     times, totals = interleaved(sessions, args.runs)
     ref = sessions[0][1](reduced[0])
     first, first_total = np.median(times[graphs[0][0]]), np.median(totals[graphs[0][0]])
-    flops = model_flops(model, reduced[0])
-    print(f"{name}: {flops / 1e9:.2f} GFLOP (torch FLOP counter on the reduced-scale frame); fp32 occupied "
-          f"{100 * np.mean(ref[0] != 17):.1f} % of voxels")
+    flops, backbone_flops = model_flops(model, reduced[0])
+    rate = max(args.matmul_gflops, matmul_gflops())  # the machine's best of the run's start and now
+    floor = flops / (rate * 1e9)
+    print(f"{name}: {flops / 1e9:.2f} GFLOP, the image network {backbone_flops / 1e9:.2f} (torch FLOP counter on the "
+          f"reduced-scale frame); fp32 occupied {100 * np.mean(ref[0] != 17):.1f} % of voxels")
+    print(f"{name}: at the matmul rate ({rate:.1f} GFLOP/s, the higher of the start's and now) these FLOPs take "
+          f"at least {floor * 1e3:.1f} ms (the image network {backbone_flops / flops * floor * 1e3:.1f} ms), the "
+          f"floor of an fp32 graph doing them no faster than the matmul"
+          + "".join(f"; {label} over it {np.median(times[label]) / floor:.2f}x" for label, _, _ in graphs
+                    if label.startswith("baseline")))
     for (label, session, inputs), (_, path, _) in zip(sessions, graphs):
         p50, total = np.median(times[label]), np.median(totals[label])
         out = session(inputs[0])
@@ -427,7 +439,8 @@ def main(argv=None) -> int:
     SPINNING = args.ort_spinning
     torch.set_num_threads(args.threads)
     print(f"threads {args.threads} (onnxruntime spinning {SPINNING}); load average {os.getloadavg()[0]:.2f} at start")
-    print(f"fp32 matmul 2048^3 (torch): {matmul_gflops():.1f} GFLOP/s at start", flush=True)
+    args.matmul_gflops = matmul_gflops()
+    print(f"fp32 matmul 2048^3 (torch): {args.matmul_gflops:.1f} GFLOP/s at start", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         if args.keep:
             tmp = args.keep
