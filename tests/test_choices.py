@@ -130,7 +130,7 @@ def test_every_quickstart_field_is_reachable_from_the_command_line():
     from occflownet.commands.quickstart import QuickstartConfig as Used
     from occflownet.options import config_kwargs
 
-    changed = QuickstartConfig(out="elsewhere", scenes=5, frames=3, val_scenes=2, val_frames=6, preset="small",
+    changed = QuickstartConfig(out="elsewhere", scenes=5, frames=3, val_scenes=2, val_frames=6, preset="tiny",
                                recipe="quickstart-3d", seed=2, train_minutes=0.5, max_steps=9)
     argv = ["quickstart", *config_argv(changed, QuickstartConfig())]
     assert Used(**config_kwargs(build_parser().parse_args(argv), Used)) == changed

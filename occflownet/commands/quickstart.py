@@ -8,7 +8,7 @@ import argparse
 from occflownet.options import add_options, config_kwargs
 from occflownet.quickstart import QuickstartConfig
 
-HELP = "synthetic world -> train tiny (bounded time) -> eval -> export, on the embedded defaults"
+HELP = "synthetic world -> train small (bounded time) -> eval -> export, on the embedded defaults"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -84,8 +84,8 @@ _RECIPES = (
     Recipe("quickstart", "the quickstart's minutes: 3D labels inside mask_camera and the rendered rays of the current "
            "frame (O = 0) with the recommended rendering", "Occ3D labels in mask_camera + " + _RAYS + ", O = 0",
            {**_ROW3, **_RENDERING, "supervision": "2d+3d", "voxel_mask": True, **_QUICK_RAYS},
-           "16.6 / 12.7 / 14.6 % val mIoU on the quickstart's val scene, 19.6 / 19.0 / 16.1 % on a 4-scene "
-           "unseen world (`occflownet quickstart`, seeds 0 / 1 / 2)", _QUICKSTART,
+           "18.1 / 14.0 / 13.2 % val mIoU on the quickstart's val scene, 21.5 / 19.9 / 15.9 % on a 4-scene "
+           "unseen world (`occflownet quickstart`, small, seeds 0 / 1 / 2)", _QUICKSTART,
            step_seconds=0.248),
     Recipe("quickstart-3d", "3D labels inside mask_camera only: the cheapest step", "Occ3D labels in mask_camera",
            {**_ROW1, "voxel_mask": True}, "12.5 / 15.3 % val mIoU (the former 6 x 8 quickstart world, "
