@@ -382,7 +382,7 @@ def bench_preset(name: str, args, whole, reduced, one_by_one, workdir: Path, thr
     print(f"{name}: {flops / 1e9:.2f} GFLOP, the image network {backbone_flops / 1e9:.2f} (torch FLOP counter on the "
           f"reduced-scale frame); fp32 occupied {100 * np.mean(ref[0] != 17):.1f} % of voxels")
     print(f"{name}: at the matmul rate ({rate:.1f} GFLOP/s, the higher of the start's and now) these FLOPs take "
-          f"at least {floor * 1e3:.1f} ms (the image network {backbone_flops / flops * floor * 1e3:.1f} ms), the "
+          f"at least {floor * 1e3:.1f} ms (the image network {backbone_flops / rate / 1e6:.1f} ms), the "
           f"floor of an fp32 graph doing them no faster than the matmul"
           + "".join(f"; {label} over it {np.median(times[label]) / floor:.2f}x" for label, _, _ in graphs
                     if label.startswith("baseline")))
