@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from occflownet.occ3d import NUM_CLASSES
-from occflownet.train.losses import (LossTerm, free_prior_loss, free_space_loss, lidar_depth_loss, lidar_depth_targets,
+from occflownet.train.losses import (LossTerm, voxel_scal_loss, free_prior_loss, free_space_loss, lidar_depth_loss, lidar_depth_targets,
                                      loss_terms, point_density_loss, step_data, render_depth_loss,
                                      render_semantics_loss, voxel_density_loss, voxel_semantics_loss, voxel_targets)
 from occflownet.train.recipe import TrainConfig
@@ -264,6 +264,57 @@ def test_3d_labels_alone_run_the_heads_on_the_supervised_voxels_only():
             assert float(terms[name]) == pytest.approx(float(value), rel=1e-6)
 
 
+def test_scene_class_affinity_by_hand():
+    """voxel_scal_loss (MonoScene's geo_scal + sem_scal) on four voxels, two of class 0 and two free, σ = 0.5 and
+    uniform logits (p_c = σ / 17): occupancy precision, recall and specificity 1/2 each; class 0's precision 1/2,
+    recall 1/34, specificity 33/34. A perfect grid scores ~0; no voxel gives 0 with a graph."""
+    classes = torch.tensor([0, 0, 17, 17], dtype=torch.uint8)
+    sigma = torch.full((4,), 0.5, requires_grad=True)
+    logits = torch.zeros(4, NUM_CLASSES, requires_grad=True)
+    loss = voxel_scal_loss(sigma, logits, classes)
+    expected = 3 * math.log(2) + math.log(2) + math.log(34) + math.log(34 / 33)
+    assert loss.item() == pytest.approx(expected, rel=1e-6)
+    loss.backward()
+    assert sigma.grad[:2].lt(0).all() and sigma.grad[2:].gt(0).all()    # raise σ where occupied, lower it where free
+    assert logits.grad[:2, 0].lt(0).all()                                  # and class 0's logit where it is labelled
+    perfect = voxel_scal_loss(torch.tensor([1.0, 1.0, 0.0, 0.0]), torch.eye(NUM_CLASSES)[[0, 0, 1, 1]] * 50, classes)
+    assert perfect.item() == pytest.approx(0.0, abs=1e-5)
+    empty = voxel_scal_loss(torch.zeros(0, requires_grad=True), torch.zeros(0, NUM_CLASSES), torch.zeros(0))
+    assert empty.item() == 0 and empty.requires_grad
+    with pytest.raises(ValueError, match="logits"):
+        voxel_scal_loss(sigma, logits[:, :3], classes)
+    masked = voxel_targets(torch.tensor([4, 17, 2], dtype=torch.uint8).view(3, 1, 1),
+                           torch.tensor([True, False, True]).view(3, 1, 1))
+    assert masked["voxel_classes"].tolist() == [4, 2]                      # the kept voxels' classes, free = 17
+    assert [t.name for t in loss_terms(TrainConfig(supervision="3d", voxel_scal_weight=0.5))] == \
+        ["voxel_density", "voxel_semantics", "voxel_scal", "lidar_depth"]
+    assert not [t for t in loss_terms(TrainConfig(voxel_scal_weight=0.5)) if t.name == "voxel_scal"]  # 3D labels only
+
+
+def test_3d_labels_alone_with_the_affinity_terms_run_the_logits_on_every_kept_voxel():
+    """With voxel_scal the semantic head runs on every kept voxel (the class terms read them all) and the occupied
+    voxels' logits are taken from those rows: the same terms as from the whole grid."""
+    losses = _computer(supervision="3d", depth_loss=False, voxel_mask=True, voxel_scal_weight=0.5)
+    cpu = torch.device("cpu")
+    g = torch.Generator().manual_seed(1)
+    semantics = torch.randint(0, 18, (2, 3, 4, 5), generator=g, dtype=torch.uint8)
+    mask = torch.rand(2, 3, 4, 5, generator=g) > 0.4
+    per_sample = [voxel_targets(semantics[b], mask[b]) for b in range(2)]
+    batch = {key: torch.cat([t[key] + (60 * b if key.endswith("rows") else 0) for b, t in enumerate(per_sample)])
+             for key in ("voxel_rows", "occupied_rows", "voxel_occupied", "voxel_classes", "occupied_labels")}
+    rows = losses.head_rows(batch, cpu)
+    assert losses.heads_at_rows and torch.equal(rows["logits_at"], batch["voxel_rows"])
+    density = torch.rand(2, 3, 4, 5, generator=g)
+    logits = torch.randn(2, 3, 4, 5, NUM_CLASSES, generator=g)
+    whole = losses({"density": density, "logits": logits}, batch, cpu)
+    at_rows = losses({"density": density.reshape(-1)[rows["density_at"]],
+                      "logits": logits.reshape(-1, NUM_CLASSES)[rows["logits_at"]]}, batch, cpu)
+    expected = 0.5 * voxel_scal_loss(density[mask], logits[mask], semantics[mask])
+    for terms in (whole, at_rows):
+        assert float(terms["voxel_scal"]) == pytest.approx(float(expected), rel=1e-6)
+        assert float(terms["voxel_semantics"]) == pytest.approx(float(whole["voxel_semantics"]), rel=1e-6)
+
+
 def _ray_batch() -> dict:
     """One sample, two rays from (0, 0, 1) along +x (10 m) and +y (20 m), one free ray along -x; one volume."""
     from occflownet.data.free_stretch import free_segment_ends
@@ -392,8 +443,11 @@ QUICKSTART_OPTIONS = dict(recipe("quickstart").settings)     # 3D labels in mask
 
 @pytest.mark.parametrize("options", [{}, FOOTPRINT_OPTIONS, {"flow": True}, QUICKSTART_OPTIONS,
                                      {"supervision": "2d+3d", "flow": True},
-                                     {"supervision": "2d+3d", "voxel_mask": True}],
-                         ids=["2d-base", "recipe", "flow", "quickstart", "2d3d-flow", "2d3d-mask"])
+                                     {"supervision": "2d+3d", "voxel_mask": True},
+                                     {"supervision": "2d+3d", "voxel_mask": True, "voxel_scal_weight": 1.0},
+                                     {"supervision": "2d+3d", "voxel_scal_weight": 1.0}],
+                         ids=["2d-base", "recipe", "flow", "quickstart", "2d3d-flow", "2d3d-mask", "2d3d-scal",
+                              "2d3d-scal-every-voxel"])
 def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(options, tmp_path):
     """A trained tiny checkpoint (occupied voxels of several classes, so disocclusion, the warp and the point terms
     see something), a real 2-sample batch of the 2D base (t in [-3, 3], dynamic filter, disocclusion), of the
@@ -428,7 +482,8 @@ def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(opt
             assert sum(len(moves["voxels"]) for moves, _ in step_batch["flow"]) > 0
         if footprint:
             share = len(rows["logits_at"]) / (2 * 640_000)
-            assert 0.05 < share < 0.8, share
+            every_logit = cfg.voxel_scal_weight > 0 and not cfg.voxel_mask     # the affinity terms read them all
+            assert share == 1.0 if every_logit else 0.05 < share < 0.8, share
             # the prior, and the 3D density term without a mask, read every σ
             everywhere = "free_prior_weight" in options or ("supervision" in options and not cfg.voxel_mask)
             assert (rows["density_at"] is None) == everywhere

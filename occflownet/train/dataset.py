@@ -174,7 +174,7 @@ def collate(items: list[dict]) -> dict:
     for key in ("voxel_rows", "occupied_rows"):      # rows of each sample's grid → rows of the batch's [B·X·Y·Z]
         if key in items[0]:
             out[key] = torch.cat([it[key] + b * GRID.num_voxels for b, it in enumerate(items)])
-    for key in ("voxel_occupied", "occupied_labels"):
+    for key in ("voxel_occupied", "voxel_classes", "occupied_labels"):
         if key in items[0]:
             out[key] = torch.cat([it[key] for it in items])
     if "ray_origins" in items[0]:

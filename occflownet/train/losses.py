@@ -4,8 +4,9 @@
 training log uses, its weight, the inputs it needs, and the unweighted function of those inputs. The inputs are named
 as :class:`occflownet.train.step.LossComputer` provides them (it computes only those its terms name): batch fields
 (``ray_depths``, ``ray_labels``, ``cam2ego``, ``depth_points``, and :func:`voxel_targets`' ``voxel_occupied``,
-``occupied_labels``), model outputs (``density``, ``logits``, ``depth_prob``, ``feature_intrinsics``; ``voxel_sigma``
-and ``occupied_logits``: σ and the logits at the supervised voxels), renderings through the per-frame volumes
+``voxel_classes``, ``occupied_labels``), model outputs (``density``, ``logits``, ``depth_prob``,
+``feature_intrinsics``; ``voxel_sigma`` and ``kept_logits``: σ and the logits at the supervised voxels,
+``occupied_logits`` at the occupied ones among them), renderings through the per-frame volumes
 (``rendered``, the ``RenderOutput`` of the batch's rays; ``free_opacity``; ``before_opacity``) and constants
 (``class_weights``, ``depth_bins``). The loss is the sum of the weighted terms, in this order:
 
@@ -25,6 +26,10 @@ and ``occupied_logits``: σ and the logits at the supervised voxels), renderings
 - "voxel_density", "voxel_semantics" (3D supervision, paper section 3.3): BCE on σ over all voxels (target
   occupied = label != 17) and CE on the semantic logits of the occupied voxels, weight 1.0 each; with
   ``voxel_mask`` both only inside ``mask_camera`` (:func:`voxel_targets` says which voxels);
+- "voxel_scal" (``voxel_scal_weight`` > 0, with 3D labels; beyond the paper): MonoScene's scene-class affinity
+  terms over the same voxels: −log of the precision, recall and specificity of the soft occupancy σ against
+  label != 17, plus the mean over the classes c labelled in the batch of the same three for σ·softmax(logits)_c
+  against label == c (:func:`voxel_scal_loss`); the semantic head then runs on every supervised voxel;
 - "lidar_depth" (``depth_loss``; BEVDepth/BEVDet ``get_depth_loss``): the LiDAR points of the current frame are
   projected into the feature map of every camera; each feature pixel that receives points gets the one-hot of the
   depth bin nearest to its *closest* point; BCE between the predicted depth distribution and that one-hot, summed
@@ -86,7 +91,7 @@ INPUT_DATA: dict[str, tuple[str, ...]] = {
     "point_labels": ("rays",), "point_sigma": ("rays",), "before_opacity": ("rays",),
     "free_opacity": ("rays", "free_rays"),
     "voxel_sigma": ("voxel_labels",), "voxel_occupied": ("voxel_labels",), "occupied_logits": ("voxel_labels",),
-    "occupied_labels": ("voxel_labels",),
+    "occupied_labels": ("voxel_labels",), "kept_logits": ("voxel_labels",), "voxel_classes": ("voxel_labels",),
     "depth_points": ("depth_points",), "class_weights": ("class_counts",),
 }
 
@@ -114,6 +119,9 @@ def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
         terms += [LossTerm("voxel_density", VOXEL_WEIGHT, ("voxel_sigma", "voxel_occupied"), voxel_density_loss),
                   LossTerm("voxel_semantics", VOXEL_WEIGHT, ("occupied_logits", "occupied_labels"),
                            voxel_semantics_loss)]
+        if cfg.voxel_scal_weight > 0:
+            terms.append(LossTerm("voxel_scal", cfg.voxel_scal_weight,
+                                  ("voxel_sigma", "kept_logits", "voxel_classes"), voxel_scal_loss))
     if cfg.depth_loss:
         terms.append(LossTerm("lidar_depth", cfg.lidar_depth_weight,
                               ("depth_prob", "feature_intrinsics", "cam2ego", "depth_points", "depth_bins"),
@@ -240,6 +248,7 @@ def voxel_targets(semantics_gt: torch.Tensor, mask: torch.Tensor | None = None) 
 
     - "voxel_rows" int64 [K]: the kept voxels (only with a mask; without one every voxel is kept, in row order);
     - "voxel_occupied" float32 [K] (or [X·Y·Z]): the density BCE's targets, 1 where the label is occupied;
+    - "voxel_classes" uint8 [K] (or [X·Y·Z]): the kept voxels' labels (17 = free), for the affinity terms;
     - "occupied_rows" int64 [K'], "occupied_labels" int64 [K']: the kept occupied voxels and their classes.
 
     The data loader adds them to each 3D sample (``occflownet.train.dataset``; ``collate`` offsets the rows by the
@@ -259,9 +268,11 @@ def voxel_targets(semantics_gt: torch.Tensor, mask: torch.Tensor | None = None) 
         keep = mask.bool().reshape(-1)
         out["voxel_rows"] = torch.nonzero(keep).reshape(-1)
         out["voxel_occupied"] = occupied[keep].float()
+        out["voxel_classes"] = labels[keep]
         occupied = occupied & keep
     else:
         out["voxel_occupied"] = occupied.float()
+        out["voxel_classes"] = labels
     out["occupied_rows"] = torch.nonzero(occupied).reshape(-1)
     out["occupied_labels"] = labels[out["occupied_rows"]].long()
     return out
@@ -287,6 +298,39 @@ def voxel_semantics_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Te
     if logits.shape[0] == 0:
         return logits.sum() * 0.0
     return F.cross_entropy(logits, labels.long())
+
+
+def _affinity(p: torch.Tensor, y: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """Σ over columns of -log precision - log recall - log specificity of the soft predictions p [K, C] in [0, 1]
+    against the 0/1 targets y [K, C], each column a class; a column's term whose denominator is 0 (no prediction,
+    no positive, no negative) is left out, and a column without a positive is left out whole. Returns
+    (the sum over the kept columns, their count)."""
+    tp, predicted, positive = (p * y).sum(0), p.sum(0), y.sum(0)
+    negative = y.shape[0] - positive
+    true_negative = negative - predicted + tp                     # Σ (1 - p)(1 - y)
+    kept = positive > 0
+    terms = [(tp / predicted.clamp_min(eps), kept & (predicted.detach() > 0)), (tp / positive.clamp_min(eps), kept),
+             (true_negative / negative.clamp_min(eps), kept & (negative > 0))]
+    total = sum(-torch.log(ratio.clamp_min(eps))[on].sum() for ratio, on in terms)
+    return total, int(kept.sum())
+
+
+def voxel_scal_loss(sigma: torch.Tensor, logits: torch.Tensor, classes: torch.Tensor) -> torch.Tensor:
+    """Scene-class affinity (MonoScene's geo_scal + sem_scal) over the supervised voxels: sigma [K] in [0, 1],
+    logits [K, 17] and classes [K] (17 = free) at the rows of :func:`voxel_targets`. Occupancy p = σ against
+    label != 17, and per class c present in ``classes`` p_c = σ·softmax(logits)_c against label == c; the occupancy
+    term plus the mean of the class terms. K = 0 gives 0 (graph kept)."""
+    if sigma.dim() != 1 or logits.shape != (sigma.shape[0], NUM_CLASSES) or classes.shape != sigma.shape:
+        raise ValueError(f"sigma [K], logits [K, {NUM_CLASSES}], classes [K] expected, got {tuple(sigma.shape)}, "
+                         f"{tuple(logits.shape)}, {tuple(classes.shape)}")
+    if not sigma.numel():
+        return sigma.sum() * 0 + logits.sum() * 0
+    with torch.autocast(device_type=sigma.device.type, enabled=False):
+        sigma, logits, classes = sigma.float(), logits.float(), classes.long()
+        onehot = F.one_hot(classes, FREE + 1)[:, :FREE].float()             # [K, 17]; free voxels all zero
+        geo, _ = _affinity(sigma[:, None], onehot.sum(1, keepdim=True))
+        sem, present = _affinity(sigma[:, None] * torch.softmax(logits, dim=-1), onehot)
+        return geo + sem / max(present, 1)
 
 
 # --- the LiDAR depth of the LSS depth distribution ------------------------------------------------------------------

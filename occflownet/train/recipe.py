@@ -102,6 +102,10 @@ class TrainConfig:
     point_density_weight: float = option(0.0, "weight of -log(sigma) of the voxel that holds each ray's LiDAR point "
                                               "(in its frame's volume): a return says its voxel is occupied (0: off, "
                                               "official; beyond the paper)", minimum=0, group=EXPERIMENTAL)
+    voxel_scal_weight: float = option(0.0, "weight of the scene-class affinity terms on the 3D labels (MonoScene): "
+                                           "-log precision, recall and specificity of occupancy (σ) and of each "
+                                           "labelled class (σ·softmax) over the supervised voxels (0: off; beyond "
+                                           "the paper)", minimum=0, group=EXPERIMENTAL)
     free_prior_weight: float = option(0.0, "weight of the mean -log(1 - sigma) over all voxels (0: off, official)",
                                       minimum=0, group=EXPERIMENTAL)
     free_space: bool = option(False, "also render LiDAR beams that returned nothing; their opacity goes to 0 "

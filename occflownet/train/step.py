@@ -70,8 +70,9 @@ class LossComputer:
         the logits); else none (the whole grid)."""
         if self.heads_at_rows:
             rows = batch.get("voxel_rows")
+            logits_rows = rows if "kept_logits" in self.needs else batch["occupied_rows"]
             return {"density_at": None if rows is None else rows.to(device),
-                    "logits_at": batch["occupied_rows"].to(device)}
+                    "logits_at": None if logits_rows is None else logits_rows.to(device)}
         if self.heads_on_footprint:
             rows = self.footprint_rows(batch).to(device)
             batch["footprint_rows"] = rows
@@ -83,7 +84,8 @@ class LossComputer:
         can read — the footprint (:func:`~occflownet.render.footprint.ray_footprint`) of the batch's rays up to
         the rendering's far end (or their free stretch's end, if beyond) and of its free rays, in the grid of the
         sample each ray's volume belongs to, the voxels holding the rays' points, with 3D labels the voxels their
-        terms read (the labelled occupied ones; the kept ones too where σ is not computed everywhere) and, with
+        terms read (the labelled occupied ones; the kept ones too where σ is not computed everywhere or the
+        affinity terms read their logits) and, with
         flow, the voxels of the boxes whose predicted voxels move (the warp reads them there; what it writes
         elsewhere it reads only at the voxel it writes)."""
         grid, far = self.render_cfg.grid, self.render_cfg.far
@@ -113,6 +115,9 @@ class LossComputer:
             flat[batch["occupied_rows"].numpy()] = True
         if "voxel_sigma" in self.needs and not self._sigma_everywhere(batch):
             flat[batch["voxel_rows"].numpy()] = True
+        if "kept_logits" in self.needs:                    # every kept voxel: all of them without a mask
+            rows = batch.get("voxel_rows")
+            flat[slice(None) if rows is None else rows.numpy()] = True
         return torch.from_numpy(np.flatnonzero(flat).astype(np.int64))
 
     def __call__(self, outputs: dict, batch: dict, device, generator: torch.Generator | None = None,
@@ -146,7 +151,9 @@ class LossComputer:
             found["voxel_sigma"] = self._at_rows(density.reshape(-1), batch.get("voxel_rows"), density.dim() == 1,
                                                  device)
         if "occupied_logits" in self.needs:
-            found["occupied_logits"] = self._occupied_logits(logits, batch, device)
+            found["occupied_logits"] = self._logits_at(logits, batch, "occupied_rows", device)
+        if "kept_logits" in self.needs:
+            found["kept_logits"] = self._logits_at(logits, batch, "voxel_rows", device)
         if "depth_prob" in self.needs:
             found.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"])
         if self.needs & {*RENDERINGS, *POINT_INPUTS}:
@@ -170,14 +177,21 @@ class LossComputer:
         grid = values.new_zeros((int(np.prod(shape)), *values.shape[1:]))
         return grid.index_copy(0, batch["footprint_rows"], values).reshape(*shape, *values.shape[1:])
 
-    def _occupied_logits(self, logits: torch.Tensor, batch: dict, device) -> torch.Tensor:
-        """The logits [K', 17] at the batch's "occupied_rows" [K']: from the footprint's table [K, 17] (at the
-        batch's ascending "footprint_rows", which hold them), given at those rows by the model, or picked from the
-        grids [B, X, Y, Z, 17]."""
-        rows = batch["occupied_rows"].to(device)
-        if "footprint_rows" in batch and logits.dim() == 2:
-            return logits[torch.searchsorted(batch["footprint_rows"], rows)]
-        return self._at_rows(logits.reshape(-1, logits.shape[-1]), rows, logits.dim() == 2, device)
+    def _logits_at(self, logits: torch.Tensor, batch: dict, key: str, device) -> torch.Tensor:
+        """The logits [K, 17] at the batch's rows ``key`` ("occupied_rows", or "voxel_rows": every voxel when the
+        batch has none): from the footprint's table [K', 17] (at the batch's ascending "footprint_rows", which hold
+        them), from the table the model gave at the kept voxels (with the affinity terms), as the model gave them
+        at exactly these rows, or picked from the grids [B, X, Y, Z, 17]."""
+        rows = batch.get(key)
+        if logits.dim() != 2:
+            flat = logits.reshape(-1, logits.shape[-1])
+            return flat if rows is None else flat[rows.to(device)]
+        table = batch.get("footprint_rows")
+        if table is None and key != "voxel_rows" and "kept_logits" in self.needs:
+            table = batch.get("voxel_rows")
+        if table is None or rows is None:        # given at exactly these rows (or the footprint is every voxel)
+            return logits
+        return logits[torch.searchsorted(table.to(device), rows.to(device))]
 
     @staticmethod
     def _at_rows(values: torch.Tensor, rows: torch.Tensor | None, given: bool, device) -> torch.Tensor:
