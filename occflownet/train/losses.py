@@ -300,7 +300,7 @@ def voxel_semantics_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Te
     return F.cross_entropy(logits, labels.long())
 
 
-def _affinity(p: torch.Tensor, y: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+def _affinity(p: torch.Tensor, y: torch.Tensor, eps: float = 1e-6) -> tuple[torch.Tensor, int]:
     """Σ over columns of -log precision - log recall - log specificity of the soft predictions p [K, C] in [0, 1]
     against the 0/1 targets y [K, C], each column a class; a column's term whose denominator is 0 (no prediction,
     no positive, no negative) is left out, and a column without a positive is left out whole. Returns
