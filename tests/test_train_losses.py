@@ -10,9 +10,10 @@ import pytest
 import torch
 
 from occflownet.occ3d import NUM_CLASSES
-from occflownet.train.losses import (LossTerm, voxel_scal_loss, free_prior_loss, free_space_loss, lidar_depth_loss, lidar_depth_targets,
+from occflownet.train.losses import (LossTerm, free_prior_loss, free_space_loss, lidar_depth_loss, lidar_depth_targets,
                                      loss_terms, point_density_loss, step_data, render_depth_loss,
-                                     render_semantics_loss, voxel_density_loss, voxel_semantics_loss, voxel_targets)
+                                     render_semantics_loss, voxel_density_loss, voxel_scal_loss, voxel_semantics_loss,
+                                     voxel_targets)
 from occflownet.train.recipe import TrainConfig
 from occflownet.train.recipes import recipe
 
