@@ -43,8 +43,8 @@ class QuickstartConfig:
     frames: int = option(4, "keyframes per training scene", minimum=1)
     val_scenes: int = option(1, "scenes of the val split (the last ones); fewer than --scenes", minimum=1)
     val_frames: int = option(8, "keyframes of each val scene (0: --frames)", minimum=0)
-    preset: str = option("small", "model preset; small (tiny with a denser lifting) scores higher on unseen scenes "
-                                  "than tiny in the same minutes, at 0.8-0.9 of tiny's steps "
+    preset: str = option("small", "model preset; small (tiny with a denser lifting and a backbone twice as wide) "
+                                  "scores higher on unseen scenes in the quickstart's minutes "
                                   "(docs/results.md#the-quickstart)", choices=PRESET_NAMES)
     recipe: str = option("quickstart", "training recipe (`occflownet recipes`): quickstart = 3D labels inside the "
                                        "camera mask and rendered LiDAR rays of the current frame; quickstart-3d = "
@@ -95,8 +95,8 @@ def matmul_gflops(size: int = 1024, seconds: float = 0.3) -> float:
 def estimate_minutes(cfg: QuickstartConfig, gflops: float, costs: StageCosts = StageCosts()) -> dict[str, float]:
     """Minutes per stage on a machine of ``gflops`` (:func:`matmul_gflops`): the reference costs scaled by the matmul
     rates; training is the smaller of its step cap and its time budget (the budget when the recipe's step was not
-    measured; ``step_seconds`` is a ``tiny`` step, and the default ``small`` takes 1.1-1.3× as long in the
-    quickstart). A rough guide (±30 % on machines like the reference, more on others), printed so that a user knows
+    measured; ``step_seconds`` is a ``tiny`` step, and the default ``small`` takes about 1.5-1.8× as long
+    in the quickstart). A rough guide (±30 % on machines like the reference, more on others), printed so that a user knows
     what to expect; nothing depends on it."""
     scale = costs.matmul_gflops / max(gflops, 1e-3)
     val = cfg.val_scenes * (cfg.val_frames or cfg.frames)    # the last scenes are the val split
