@@ -95,8 +95,8 @@ def matmul_gflops(size: int = 1024, seconds: float = 0.3) -> float:
 def estimate_minutes(cfg: QuickstartConfig, gflops: float, costs: StageCosts = StageCosts()) -> dict[str, float]:
     """Minutes per stage on a machine of ``gflops`` (:func:`matmul_gflops`): the reference costs scaled by the matmul
     rates; training is the smaller of its step cap and its time budget (the budget when the recipe's step was not
-    measured; ``step_seconds`` is a ``tiny`` step, and the default ``small`` takes about 1.5-1.8× as long
-    in the quickstart). A rough guide (±30 % on machines like the reference, more on others), printed so that a user knows
+    measured; ``step_seconds`` is a ``tiny`` step, and the default ``small`` takes about 1.5-1.8× as long in the
+    quickstart). A rough guide (±30 % on machines like the reference, more on others), printed so that a user knows
     what to expect; nothing depends on it."""
     scale = costs.matmul_gflops / max(gflops, 1e-3)
     val = cfg.val_scenes * (cfg.val_frames or cfg.frames)    # the last scenes are the val split

@@ -40,8 +40,8 @@ def test_small_is_tiny_with_a_denser_lifting():
     from occflownet.occ3d import GRID
 
     tiny, small = get_preset("tiny"), get_preset("small")
-    assert asdict(small) | {"preset": "tiny", "input_size": tiny.input_size,
-                            "num_depth_bins": tiny.num_depth_bins, "backbone_width": tiny.backbone_width} == asdict(tiny)
+    assert asdict(small) | {"preset": "tiny", "input_size": tiny.input_size, "num_depth_bins": tiny.num_depth_bins,
+                            "backbone_width": tiny.backbone_width} == asdict(tiny)
     cams = default_rig(480, 270)["cameras"].values()
     k = torch.tensor([c["intrinsic"] for c in cams], dtype=torch.float32)[None]
     cam2ego = torch.tensor([c["cam2ego"] for c in cams], dtype=torch.float32)[None]

@@ -82,7 +82,8 @@ _RECIPES = (
            {**_ROW6, **_RENDERING}, "49.4 ± 1.7 % mIoU (1 × 8 world, 2,000 steps, 5 seeds); 1.34x the 3D labels' "
            "mIoU at 800 steps on a fresh world", _FITTING, step_seconds=None),
     Recipe("quickstart", "the quickstart's minutes: 3D labels inside mask_camera with their class-affinity terms and "
-           "the rendered rays of the current frame (O = 0) with the recommended rendering", "Occ3D labels in mask_camera + " + _RAYS + ", O = 0",
+           "the rendered rays of the current frame (O = 0) with the recommended rendering",
+           "Occ3D labels in mask_camera + " + _RAYS + ", O = 0",
            {**_ROW3, **_RENDERING, "supervision": "2d+3d", "voxel_mask": True, **_QUICK_RAYS,
             "voxel_scal_weight": 0.5},
            "17.6 / 12.3 / 14.9 % val mIoU on the quickstart's val scene, 21.8 / 18.1 / 17.1 % on a 4-scene "
