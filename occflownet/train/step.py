@@ -58,6 +58,12 @@ class LossComputer:
         gradients either way (tests/test_train_losses.py)."""
         return self.footprint and bool(self.needs & {*RENDERINGS, *POINT_INPUTS}) and "logits" not in self.needs
 
+    @property
+    def _logits_key(self) -> str:
+        """The batch's rows the semantic head runs at when :attr:`heads_at_rows`: the kept voxels when the affinity
+        terms read their logits, else the occupied ones."""
+        return "voxel_rows" if "kept_logits" in self.needs else "occupied_rows"
+
     def _sigma_everywhere(self, batch: dict) -> bool:
         """Whether a term reads σ of every voxel: the free prior, or the 3D density term without a voxel mask."""
         return "density" in self.needs or ("voxel_sigma" in self.needs and batch.get("voxel_rows") is None)
@@ -69,8 +75,7 @@ class LossComputer:
         as the batch's "footprint_rows", from which :meth:`inputs` puts σ back on the grids and the renderer reads
         the logits); else none (the whole grid)."""
         if self.heads_at_rows:
-            rows = batch.get("voxel_rows")
-            logits_rows = rows if "kept_logits" in self.needs else batch["occupied_rows"]
+            rows, logits_rows = batch.get("voxel_rows"), batch.get(self._logits_key)
             return {"density_at": None if rows is None else rows.to(device),
                     "logits_at": None if logits_rows is None else logits_rows.to(device)}
         if self.heads_on_footprint:
@@ -183,12 +188,11 @@ class LossComputer:
         them), from the table the model gave at the kept voxels (with the affinity terms), as the model gave them
         at exactly these rows, or picked from the grids [B, X, Y, Z, 17]."""
         rows = batch.get(key)
-        if logits.dim() != 2:
-            flat = logits.reshape(-1, logits.shape[-1])
-            return flat if rows is None else flat[rows.to(device)]
+        if logits.dim() != 2:                    # the grids [B, X, Y, Z, 17]
+            return self._at_rows(logits.reshape(-1, logits.shape[-1]), rows, False, device)
         table = batch.get("footprint_rows")
-        if table is None and key != "voxel_rows" and "kept_logits" in self.needs:
-            table = batch.get("voxel_rows")
+        if table is None:                        # the heads ran at the rows head_rows asked for
+            table = None if key == self._logits_key else batch.get(self._logits_key)
         if table is None or rows is None:        # given at exactly these rows (or the footprint is every voxel)
             return logits
         return logits[torch.searchsorted(table.to(device), rows.to(device))]
