@@ -29,8 +29,9 @@ def test_presets_match_the_design():
 
 
 def test_small_is_tiny_with_a_denser_lifting_and_a_wider_backbone():
-    """small differs from tiny only in its input size, depth bins and backbone width, and its frustum points fall into about five
-    times as many distinct voxels of the default rig's view (the full-resolution skip is that much less sparse)."""
+    """small differs from tiny only in its input size, depth bins and backbone width, and its frustum points fall
+    into about five times as many distinct voxels of the default rig's view (the full-resolution skip is that much
+    less sparse)."""
     import numpy as np
     import torch
 
