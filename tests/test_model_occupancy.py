@@ -81,6 +81,26 @@ def test_backward_reaches_every_parameter():
     assert sum(float(p.grad.abs().sum()) for p in model.parameters()) > 0
 
 
+def test_the_image_head_is_trained_only_and_leaves_the_rest_as_it_was():
+    """ModelConfig.image_semantics adds a head giving each feature cell's class [B, 6, 17, h, w]; it is created
+    after every other module, so the other weights are those of the model without it, and neither forward's other
+    outputs nor inference() change."""
+    plain = create_model(get_preset("tiny"), seed=0).train()
+    headed = create_model(get_preset("tiny", image_semantics=True), seed=0).train()
+    shared = plain.state_dict()
+    assert all(torch.equal(v, shared[k]) for k, v in headed.state_dict().items() if not k.startswith("image_head"))
+    assert "image_logits" not in plain(*_inputs())
+    out = headed(*_inputs())
+    h, w = headed.cfg.feature_size
+    assert out["image_logits"].shape == (1, 6, NUM_CLASSES, h, w)
+    out["image_logits"].square().mean().backward()
+    assert headed.image_head.weight.grad.abs().sum() > 0 and headed.backbone.conv1.weight.grad.abs().sum() > 0
+    with torch.no_grad():
+        # exact: the same weights and the same ops in the same order (the head only reads the features)
+        assert all(torch.equal(a, b) for a, b in zip(plain.eval().inference(*_inputs()),
+                                                     headed.eval().inference(*_inputs())))
+
+
 def test_training_forward_runs_under_bf16_autocast_and_agrees_with_float32():
     """--amp on a bf16 device: the network under torch.autocast(bfloat16) (the decoder's scatter-add stays float32)
     trains, every gradient finite, and its outputs follow the float32 ones (bf16 keeps ~3 significant digits)."""

@@ -109,6 +109,21 @@ def test_the_lifting_and_the_depth_targets_follow_the_flip(prepared_synth_root):
         assert torch.equal(*targets) and int((targets[0] >= 0).sum()) > 0
 
 
+def test_the_depth_points_carry_their_own_labels(prepared_synth_root):
+    """Each depth point's label is that of its own point: as the rays' labels, it mostly names the class of the 3D
+    label at the point's voxel, also off the commonest class (the road); the same labels shuffled would not."""
+    root, _ = prepared_synth_root
+    item = _items(root, False)[(1, 0)]
+    points, labels = item["depth_points"].numpy(), item["depth_labels"].numpy()
+    assert item["depth_labels"].dtype == torch.uint8 and labels.shape == points.shape[:1] and len(labels) > 100
+    semantics = item["occ_semantics"].numpy()[tuple(GRID.index_of(points).T)]
+    rare = labels != np.bincount(labels).argmax()
+    assert rare.sum() > 20
+    agree = float(np.mean((semantics == labels)[rare]))
+    shuffled = float(np.mean(semantics[rare] == np.random.default_rng(0).permutation(labels[rare])))
+    assert agree > 0.5 and agree > shuffled + 0.2, (agree, shuffled)
+
+
 def test_the_box_moves_move_mirrored_voxels_to_mirrored_places(prepared_synth_root):
     root, _ = prepared_synth_root
     item = _items(root, False)[(2, 5)]

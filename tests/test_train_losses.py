@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from occflownet.occ3d import NUM_CLASSES
-from occflownet.train.losses import (LossTerm, free_prior_loss, free_space_loss, lidar_depth_loss, lidar_depth_targets,
-                                     loss_terms, point_density_loss, step_data, render_depth_loss,
-                                     render_semantics_loss, voxel_density_loss, voxel_scal_loss, voxel_semantics_loss,
-                                     voxel_targets)
+from occflownet.train.losses import (LossTerm, free_prior_loss, free_space_loss, image_semantics_loss, lidar_depth_loss,
+                                     lidar_depth_targets, loss_terms, nearest_points, point_density_loss, step_data,
+                                     render_depth_loss, render_semantics_loss, voxel_density_loss, voxel_scal_loss,
+                                     voxel_semantics_loss, voxel_targets)
 from occflownet.train.recipe import TrainConfig
 from occflownet.train.recipes import recipe
 
@@ -107,6 +107,48 @@ def test_lidar_depth_loss_equals_hand_computed_bce():
     assert torch.count_nonzero(prob.grad.sum(2)) == 3  # only the three target pixels get a gradient
     none = lidar_depth_loss(prob, k, cam2ego, [torch.zeros(0, 3)], CENTERS)
     assert none.item() == 0
+
+
+def test_image_semantics_targets_take_the_nearest_points_label():
+    k, cam2ego, points = _lidar_case()
+    labels = [torch.tensor([3, 5, 9, 4, 1], dtype=torch.uint8)]
+    depth, label = nearest_points(k, cam2ego, points, (10, 16), labels)
+    label = label.view(1, 2, 10, 16)
+    hits = {(int(c), int(v), int(u)): int(label[0, c, v, u]) for c, v, u in torch.nonzero(label[0] >= 0)}
+    # the 60 m point lands in pixel (0, 4, 7) too, behind the 5.1 m one: no bin, but no class of its own either
+    assert hits == {(0, 4, 7): 3, (0, 4, 8): 9, (1, 4, 7): 1}
+    assert depth.view(1, 2, 10, 16)[0, 0, 4, 7].item() == pytest.approx(5.1)
+    tie = [torch.cat([points[0][:1], points[0][:1]])]                # two points at one depth: the smaller label
+    _, label = nearest_points(k, cam2ego, tie, (10, 16), [torch.tensor([7, 2])])
+    assert sorted(label[label >= 0].tolist()) == [2]
+    with pytest.raises(ValueError, match="labels"):
+        nearest_points(k, cam2ego, points, (10, 16), [torch.zeros(4)])
+
+
+def test_image_semantics_loss_equals_hand_computed_ce():
+    k, cam2ego, points = _lidar_case()
+    labels = [torch.tensor([3, 5, 9, 4, 1])]
+    logits = torch.zeros(1, 2, NUM_CLASSES, 10, 16, requires_grad=True)
+    loss = image_semantics_loss(logits, k, cam2ego, points, labels)
+    assert loss.item() == pytest.approx(LOG17, rel=1e-6)
+    loss.backward()
+    assert torch.count_nonzero(logits.grad.abs().sum(2)) == 3    # only the three pixels with a point
+    assert logits.grad[0, 0, 3, 4, 7].item() == pytest.approx((1 / NUM_CLASSES - 1) / 3, rel=1e-5)
+    right = torch.zeros(1, 2, NUM_CLASSES, 10, 16)
+    right[0, 0, 3, 4, 7] = right[0, 0, 9, 4, 8] = right[0, 1, 1, 4, 7] = 30.0
+    assert image_semantics_loss(right, k, cam2ego, points, labels).item() < 1e-10
+    none = image_semantics_loss(logits, k, cam2ego, [torch.zeros(0, 3)], [torch.zeros(0)])
+    assert none.item() == 0
+    with pytest.raises(ValueError, match="image_logits"):
+        image_semantics_loss(logits[:, :, :5], k, cam2ego, points, labels)
+
+
+def test_image_semantics_term_is_off_by_default_and_weighted():
+    assert "image_semantics" not in [t.name for t in loss_terms(TrainConfig())]
+    term = _term(TrainConfig(image_semantics_weight=0.5), "image_semantics")
+    assert term.weight == 0.5 and term.needs[0] == "image_logits" and "depth_labels" in term.needs
+    with pytest.raises(ValueError, match="image_semantics_weight"):
+        TrainConfig(image_semantics_weight=-1.0)
 
 
 def test_voxel_losses_by_hand_with_mask():

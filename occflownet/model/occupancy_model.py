@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from occflownet.contract import NUM_CAMERAS
-from occflownet.occ3d import FREE, GRID
+from occflownet.occ3d import FREE, GRID, NUM_CLASSES
 from occflownet.model.backbone import ResNet
 from occflownet.model.presets import FEATURE_STRIDE, ModelConfig
 from occflownet.model.decoder import VoxelDecoder, block_rows, unblock
@@ -41,6 +41,8 @@ class OccupancyModel(nn.Module):
         self.decoder = VoxelDecoder(cfg.context_channels, cfg.decoder_stride, cfg.decoder_channels,
                                     cfg.decoder_blocks, cfg.head_channels, cfg.sigma_hidden, cfg.semantic_hidden,
                                     cfg.head_init)
+        # training only (an auxiliary loss reads it; inference() and the exported graph never run it)
+        self.image_head = nn.Conv2d(cfg.neck_channels, NUM_CLASSES, 1) if cfg.image_semantics else None
 
     # ---------------------------------------------------------------- shared trunk
     def _check_inputs(self, images, intrinsics, cam2ego):
@@ -54,7 +56,8 @@ class OccupancyModel(nn.Module):
         return intrinsics.to(torch.float32), cam2ego.to(torch.float32)
 
     def _lift(self, images, intrinsics, cam2ego):
-        """→ (trunk grid, fine points, depth_prob [B, 6, D, h, w], feature_intrinsics [B, 6, 3, 3])."""
+        """→ (trunk grid, fine points, depth_prob [B, 6, D, h, w], feature_intrinsics [B, 6, 3, 3],
+        features [B·6, neck, h, w])."""
         intrinsics, cam2ego = self._check_inputs(images, intrinsics, cam2ego)
         cfg = self.cfg
         b = images.shape[0]
@@ -71,7 +74,7 @@ class OccupancyModel(nn.Module):
             fine = None
         feature_k = scale_intrinsics_to_features(input_k, FEATURE_STRIDE)
         trunk, fine_points = self.lift(depth_prob, context, fine, feature_k, cam2ego)
-        return trunk, fine_points, depth_prob, feature_k
+        return trunk, fine_points, depth_prob, feature_k, features
 
     # ---------------------------------------------------------------- public entry points
     def forward(self, images: torch.Tensor, intrinsics: torch.Tensor, cam2ego: torch.Tensor,
@@ -81,6 +84,7 @@ class OccupancyModel(nn.Module):
         logits float [B, 200, 200, 16, 17];
         depth_prob float [B, 6, D, h, w] (softmax over D, z-depth bins ``cfg.depth_bin_centers()``);
         feature_intrinsics float [B, 6, 3, 3] (camera frame → feature-map pixel coordinates);
+        with ``cfg.image_semantics`` also image_logits float [B, 6, 17, h, w] (the class of each feature cell);
         in eval mode also occupancy uint8 [B, 200, 200, 16] (fused with τ = cfg.threshold; a training step has no
         use for it).
 
@@ -88,7 +92,7 @@ class OccupancyModel(nn.Module):
         + y)·16 + z, ego frame): the head then runs on those voxels only and ``density`` is [K] / ``logits`` [K, 17]
         in the rows' order (a 3D-label loss needs σ and the classes only where it has labels: far fewer voxels
         than the grid). No occupancy is fused then."""
-        trunk, fine_points, depth_prob, feature_k = self._lift(images, intrinsics, cam2ego)
+        trunk, fine_points, depth_prob, feature_k, features = self._lift(images, intrinsics, cam2ego)
         s = self.cfg.decoder_stride
         to_block = lambda rows: None if rows is None else block_rows(rows, GRID.shape, s)  # noqa: E731
         density_rows = to_block(density_at)
@@ -98,6 +102,9 @@ class OccupancyModel(nn.Module):
         logits = semantic_logits if logits_at is not None else unblock(semantic_logits, s)
         out = {"density": torch.sigmoid(density_logit), "density_logit": density_logit, "logits": logits,
                "depth_prob": depth_prob, "feature_intrinsics": feature_k}
+        if self.image_head is not None:
+            out["image_logits"] = self.image_head(features).reshape(depth_prob.shape[:2] + (NUM_CLASSES,)
+                                                                    + features.shape[-2:])
         if not self.training and density_at is None and logits_at is None:
             with torch.no_grad():
                 out["occupancy"] = fuse_occupancy(out["density"], logits, self.cfg.threshold)
@@ -109,7 +116,7 @@ class OccupancyModel(nn.Module):
         Same result as fusing :meth:`forward`'s outputs, computed as a CPU runs it fastest: the pooling by sorted
         segment sums, the per-voxel chain slab by slab, Φs only on voxels with σ ≥ τ
         (:meth:`~occflownet.model.decoder.VoxelDecoder.fused_occupancy`)."""
-        trunk, fine_points, _, _ = self._lift(images, intrinsics, cam2ego)
+        trunk, fine_points, _, _, _ = self._lift(images, intrinsics, cam2ego)
         return self.decoder.fused_occupancy(trunk, fine_points, self.cfg.threshold)
 
 

@@ -62,6 +62,9 @@ class ModelConfig:
     semantic_hidden: tuple[int, ...] = (16,)       # hidden layers of the semantic MLP Φs
     head_init: str = "prior"                       # "prior": torch default, Φσ bias -2.2 (σ ≈ 0.1);
                                                    # "official": Xavier-uniform weights, zero biases (σ ≈ 0.5)
+    # --- training only ---
+    image_semantics: bool = False                  # a 1x1 head on the stride-16 features giving each cell's class,
+                                                   # trained by an auxiliary loss; not part of inference or export
     # --- fusion ---
     threshold: float = 0.35                        # τ: occupied where σ >= τ (0.35 2D-trained, 0.30 3D-trained)
     default_calibration: dict = field(default_factory=_default_calibration)

@@ -103,7 +103,8 @@ class TrainingSamples(Dataset):
                                    f"index; re-run `occflownet prepare --dataroot {self.dataroot}`")
                 item["flow"] = flow_moves(record, frames)
         if "depth_points" in self.data:
-            item["depth_points"] = torch.from_numpy(self._depth_points(position, rng))
+            points, labels = self._depth_points(position, rng)
+            item.update(depth_points=torch.from_numpy(points), depth_labels=torch.from_numpy(labels))
         if "voxel_labels" in self.data:
             occ = load_occupancy(self.dataroot, sample.occupancy_path)
             item["occ_semantics"] = torch.from_numpy(occ.semantics)                       # uint8 [200, 200, 16]
@@ -152,15 +153,18 @@ class TrainingSamples(Dataset):
                 "free_slot": torch.from_numpy(np.searchsorted(offsets, free.time_offsets.astype(np.int64))),
                 "slot_volume": torch.from_numpy(self._volume_of(np.asarray(offsets, np.int8), frames))}
 
-    def _depth_points(self, position: int, rng: np.random.Generator) -> np.ndarray:
-        """float32 [N, 3]: the keyframe's LiDAR points (t = 0) in the current ego frame, for the LSS depth loss."""
+    def _depth_points(self, position: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """The keyframe's LiDAR points (t = 0) that cameras see, for the LSS depth loss and the image semantics:
+        (float32 [N, 3] in the current ego frame, uint8 [N] their classes)."""
         frame = self.rays.frame(position)
         _, first = np.unique(frame.point_index, return_index=True)    # a point seen by two cameras counts once
         points = transform_points(invert(self.index.arrays["lidar_ego2global"][position]), frame.points[first])
-        points = points[GRID.contains(points)]
+        inside = GRID.contains(points)
+        points, labels = points[inside], frame.labels[first][inside]
         if len(points) > MAX_DEPTH_POINTS:
-            points = points[rng.choice(len(points), MAX_DEPTH_POINTS, replace=False)]
-        return points.astype(np.float32)
+            pick = rng.choice(len(points), MAX_DEPTH_POINTS, replace=False)
+            points, labels = points[pick], labels[pick]
+        return points.astype(np.float32), labels.astype(np.uint8)
 
 
 def collate(items: list[dict]) -> dict:
@@ -169,8 +173,9 @@ def collate(items: list[dict]) -> dict:
     for key in ("images", "intrinsics", "cam2ego", "occ_semantics", "occ_mask"):
         if key in items[0]:
             out[key] = torch.stack([it[key] for it in items])
-    if "depth_points" in items[0]:
-        out["depth_points"] = [it["depth_points"] for it in items]
+    for key in ("depth_points", "depth_labels"):                      # one tensor per sample
+        if key in items[0]:
+            out[key] = [it[key] for it in items]
     for key in ("voxel_rows", "occupied_rows"):      # rows of each sample's grid → rows of the batch's [B·X·Y·Z]
         if key in items[0]:
             out[key] = torch.cat([it[key] + b * GRID.num_voxels for b, it in enumerate(items)])

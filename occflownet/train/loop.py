@@ -151,12 +151,14 @@ def _load_flow(cfg: TrainConfig):
 
 
 def _model_config(cfg: TrainConfig, index, positions):
-    """The preset's ModelConfig with τ for this supervision and the training rig as default calibration."""
+    """The preset's ModelConfig with τ for this supervision, the training rig as default calibration and the image
+    head when a loss term trains it."""
     model_cfg = get_preset(cfg.preset)
     sample = index[int(positions[0])]
     calib = calibration_json(sample.intrinsics, sample.cam2ego, sample.image_sizes[0])
     head_init = cfg.head_init or model_cfg.head_init
-    return replace(model_cfg, threshold=cfg.resolved_threshold(), default_calibration=calib, head_init=head_init)
+    return replace(model_cfg, threshold=cfg.resolved_threshold(), default_calibration=calib, head_init=head_init,
+                   image_semantics=cfg.image_semantics_weight > 0)
 
 
 def _initial_state(cfg: TrainConfig, model_cfg: ModelConfig, device, ckpt_path: Path, resume: bool,

@@ -3,10 +3,10 @@
 :func:`loss_terms` reads the configuration and returns the run's terms, each a :class:`LossTerm`: the name the
 training log uses, its weight, the inputs it needs, and the unweighted function of those inputs. The inputs are named
 as :class:`occflownet.train.step.LossComputer` provides them (it computes only those its terms name): batch fields
-(``ray_depths``, ``ray_labels``, ``cam2ego``, ``depth_points``, and :func:`voxel_targets`' ``voxel_occupied``,
-``voxel_classes``, ``occupied_labels``), model outputs (``density``, ``logits``, ``depth_prob``,
-``feature_intrinsics``; ``voxel_sigma`` and ``kept_logits``: σ and the logits at the supervised voxels,
-``occupied_logits`` at the occupied ones among them), renderings through the per-frame volumes
+(``ray_depths``, ``ray_labels``, ``cam2ego``, ``depth_points``, ``depth_labels``, and :func:`voxel_targets`'
+``voxel_occupied``, ``voxel_classes``, ``occupied_labels``), model outputs (``density``, ``logits``, ``depth_prob``,
+``feature_intrinsics``, ``image_logits``; ``voxel_sigma`` and ``kept_logits``: σ and the logits at the supervised
+voxels, ``occupied_logits`` at the occupied ones among them), renderings through the per-frame volumes
 (``rendered``, the ``RenderOutput`` of the batch's rays; ``free_opacity``; ``before_opacity``) and constants
 (``class_weights``, ``depth_bins``). The loss is the sum of the weighted terms, in this order:
 
@@ -34,6 +34,10 @@ as :class:`occflownet.train.step.LossComputer` provides them (it computes only t
   projected into the feature map of every camera; each feature pixel that receives points gets the one-hot of the
   depth bin nearest to its *closest* point; BCE between the predicted depth distribution and that one-hot, summed
   over bins and averaged over pixels with a target; weight ``lidar_depth_weight`` (0.05, official);
+- "image_semantics" (``image_semantics_weight`` > 0, beyond the paper): the same points' labels; cross-entropy of
+  the model's image head (``ModelConfig.image_semantics``: the class of each feature cell, training only) against
+  the label of each feature pixel's closest point, averaged over those pixels (:func:`image_semantics_loss`): the
+  image features learn the classes directly, not only through the lift;
 - "free_space" (``free_space`` or ``free_beyond_grid``, beyond the paper): mean -log(1 - opacity) of the free rays
   (LiDAR beams without a return, camera rays to points beyond the grid), weight ``free_space_weight`` (none at 0),
   raised linearly from 0 over the first ``free_ramp_steps`` steps when that is set;
@@ -92,7 +96,7 @@ INPUT_DATA: dict[str, tuple[str, ...]] = {
     "free_opacity": ("rays", "free_rays"),
     "voxel_sigma": ("voxel_labels",), "voxel_occupied": ("voxel_labels",), "occupied_logits": ("voxel_labels",),
     "occupied_labels": ("voxel_labels",), "kept_logits": ("voxel_labels",), "voxel_classes": ("voxel_labels",),
-    "depth_points": ("depth_points",), "class_weights": ("class_counts",),
+    "depth_points": ("depth_points",), "depth_labels": ("depth_points",), "class_weights": ("class_counts",),
 }
 
 
@@ -126,6 +130,10 @@ def loss_terms(cfg: TrainConfig) -> tuple[LossTerm, ...]:
         terms.append(LossTerm("lidar_depth", cfg.lidar_depth_weight,
                               ("depth_prob", "feature_intrinsics", "cam2ego", "depth_points", "depth_bins"),
                               lidar_depth_loss))
+    if cfg.image_semantics_weight > 0:
+        terms.append(LossTerm("image_semantics", cfg.image_semantics_weight,
+                              ("image_logits", "feature_intrinsics", "cam2ego", "depth_points", "depth_labels"),
+                              image_semantics_loss))
     if (cfg.free_space or cfg.free_beyond_grid) and cfg.free_space_weight > 0:
         terms.append(LossTerm("free_space", cfg.free_space_weight, ("free_opacity",), free_space_loss,
                               cfg.free_ramp_steps))
@@ -333,53 +341,75 @@ def voxel_scal_loss(sigma: torch.Tensor, logits: torch.Tensor, classes: torch.Te
         return geo + sem / max(present, 1)
 
 
-# --- the LiDAR depth of the LSS depth distribution ------------------------------------------------------------------
-def lidar_depth_targets(feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor,
-                        points_ego: Sequence[torch.Tensor], feature_size: tuple[int, int],
-                        depth_bin_centers: torch.Tensor) -> torch.Tensor:
-    """Depth-bin targets of the feature maps → long [B, N_cam, h, w]: bin index, or -1 where no point lands.
+# --- the LiDAR depth of the LSS depth distribution, the class of each feature cell ---------------------------------
+def nearest_points(feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor, points_ego: Sequence[torch.Tensor],
+                   feature_size: tuple[int, int], labels: Sequence[torch.Tensor] | None = None):
+    """The nearest LiDAR point in each feature pixel → (depth float64 [B·N·h·w]: its camera z-depth, inf where no
+    point lands; label int64 [B·N·h·w]: its label, -1 where none (ties at equal depth: the smallest label), or None
+    without ``labels``). Pixels are ordered [B, N, h, w].
 
     feature_intrinsics [B, N, 3, 3]: camera frame (OpenCV) → feature-map pixels, pixel centres at integer
     coordinates (for stride s: fx/s, fy/s, (cx + 0.5)/s - 0.5, (cy + 0.5)/s - 0.5); a point lands in feature
-    pixel (round(u), round(v)). cam2ego [B, N, 4, 4]. points_ego: B tensors [N_b, 3], LiDAR points of the
-    current frame in the ego frame. The depth is the camera z-depth (the LSS frustum's depth); the target of a
-    pixel is the bin whose centre is nearest to the smallest depth among its points; depths more than half a
-    bin outside [centers[0], centers[-1]] give no target.
+    pixel (round(u), round(v)) when it lies in front of the camera. cam2ego [B, N, 4, 4]. points_ego: B tensors
+    [N_b, 3], LiDAR points of the current frame in the ego frame; labels: B tensors [N_b] (integers), their classes.
     """
     b, n_cam = feature_intrinsics.shape[:2]
     h, w = feature_size
     if cam2ego.shape != (b, n_cam, 4, 4) or feature_intrinsics.shape != (b, n_cam, 3, 3):
         raise ValueError(f"feature_intrinsics must be [B, N, 3, 3] and cam2ego [B, N, 4, 4], got "
                          f"{tuple(feature_intrinsics.shape)} and {tuple(cam2ego.shape)}")
-    if len(points_ego) != b:
-        raise ValueError(f"points_ego must hold {b} tensors (one per batch item), got {len(points_ego)}")
-    centers = depth_bin_centers.to(torch.float64)
-    if centers.dim() != 1 or centers.numel() < 2 or not bool((centers[1:] > centers[:-1]).all()):
-        raise ValueError("depth_bin_centers must be an increasing 1-D tensor with at least 2 bins")
+    if len(points_ego) != b or (labels is not None and len(labels) != b):
+        raise ValueError(f"points_ego (and labels) must hold {b} tensors (one per batch item), got {len(points_ego)}")
     device = feature_intrinsics.device
     nearest = torch.full((b * n_cam * h * w,), float("inf"), dtype=torch.float64, device=device)
+    hits = []                                                      # (flat pixel, depth, label) of every landed point
     ego2cam = torch.linalg.inv(cam2ego.to(torch.float64))
     k = feature_intrinsics.to(torch.float64)
     for bi, pts in enumerate(points_ego):
-        if pts.dim() != 2 or pts.shape[1] < 3:
-            raise ValueError(f"points_ego[{bi}] must be [N, 3], got {tuple(pts.shape)}")
+        if pts.dim() != 2 or pts.shape[1] < 3 or (labels is not None and labels[bi].shape != pts.shape[:1]):
+            raise ValueError(f"points_ego[{bi}] must be [N, 3] (and labels[{bi}] [N]), got {tuple(pts.shape)}")
         p = pts[:, :3].to(device=device, dtype=torch.float64)
         for ci in range(n_cam):
             cam = p @ ego2cam[bi, ci, :3, :3].T + ego2cam[bi, ci, :3, 3]
-            z = cam[:, 2]
-            front = z > 1e-6
+            front = cam[:, 2] > 1e-6
             uvw = cam[front] @ k[bi, ci].T
             col = torch.round(uvw[:, 0] / uvw[:, 2])
             row = torch.round(uvw[:, 1] / uvw[:, 2])
             ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
             flat = ((bi * n_cam + ci) * h + row[ok].long()) * w + col[ok].long()
-            nearest.scatter_reduce_(0, flat, z[front][ok], reduce="amin")
+            z = cam[front, 2][ok]
+            nearest.scatter_reduce_(0, flat, z, reduce="amin")
+            if labels is not None:
+                hits.append((flat, z, labels[bi].to(device)[front][ok].long()))
+    if labels is None:
+        return nearest, None
+    label = torch.full_like(nearest, NUM_CLASSES + 1, dtype=torch.int64)
+    for flat, z, lab in hits:
+        won = z == nearest[flat]
+        label.scatter_reduce_(0, flat[won], lab[won], reduce="amin")
+    return nearest, torch.where(torch.isinf(nearest), torch.full_like(label, -1), label)
+
+
+def lidar_depth_targets(feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor,
+                        points_ego: Sequence[torch.Tensor], feature_size: tuple[int, int],
+                        depth_bin_centers: torch.Tensor) -> torch.Tensor:
+    """Depth-bin targets of the feature maps → long [B, N_cam, h, w]: bin index, or -1 where no point lands.
+
+    Inputs as :func:`nearest_points`. The depth is the camera z-depth (the LSS frustum's depth); the target of a
+    pixel is the bin whose centre is nearest to the smallest depth among its points; depths more than half a
+    bin outside [centers[0], centers[-1]] give no target.
+    """
+    centers = depth_bin_centers.to(torch.float64)
+    if centers.dim() != 1 or centers.numel() < 2 or not bool((centers[1:] > centers[:-1]).all()):
+        raise ValueError("depth_bin_centers must be an increasing 1-D tensor with at least 2 bins")
+    nearest, _ = nearest_points(feature_intrinsics, cam2ego, points_ego, feature_size)
+    centers = centers.to(nearest.device)
     half_lo = 0.5 * (centers[1] - centers[0])
     half_hi = 0.5 * (centers[-1] - centers[-2])
     valid = (nearest >= centers[0] - half_lo) & (nearest <= centers[-1] + half_hi)
     boundaries = 0.5 * (centers[1:] + centers[:-1])
     bins = torch.bucketize(nearest.clamp(max=float(centers[-1]) + 1.0), boundaries)
-    return torch.where(valid, bins, torch.full_like(bins, -1)).view(b, n_cam, h, w)
+    return torch.where(valid, bins, torch.full_like(bins, -1)).view(*feature_intrinsics.shape[:2], *feature_size)
 
 
 def lidar_depth_loss(depth_prob: torch.Tensor, feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor,
@@ -404,3 +434,18 @@ def lidar_depth_loss(depth_prob: torch.Tensor, feature_intrinsics: torch.Tensor,
     return bce / n_target
 
 
+def image_semantics_loss(image_logits: torch.Tensor, feature_intrinsics: torch.Tensor, cam2ego: torch.Tensor,
+                         points_ego: Sequence[torch.Tensor], point_labels: Sequence[torch.Tensor]) -> torch.Tensor:
+    """Cross-entropy of the image head's logits [B, N, 17, h, w] against the label of the nearest LiDAR point in
+    each feature pixel (:func:`nearest_points`), averaged over the pixels a point lands in (0 when none does).
+    Unweighted (the "image_semantics" term weighs it by ``image_semantics_weight``)."""
+    if image_logits.dim() != 5 or image_logits.shape[2] != NUM_CLASSES:
+        raise ValueError(f"image_logits must be [B, N, {NUM_CLASSES}, h, w], got {tuple(image_logits.shape)}")
+    with torch.no_grad():
+        _, target = nearest_points(feature_intrinsics, cam2ego, points_ego, tuple(image_logits.shape[-2:]),
+                                   point_labels)
+    has_target = target >= 0
+    if not bool(has_target.any()):
+        return image_logits.sum() * 0.0
+    logits = image_logits.permute(0, 1, 3, 4, 2).reshape(-1, NUM_CLASSES)
+    return F.cross_entropy(logits[has_target].float(), target[has_target])

@@ -96,6 +96,10 @@ class TrainConfig:
                                         group=EXPERIMENTAL)
     lidar_depth_weight: float = option(0.05, "weight of the LiDAR depth BCE on the LSS depth distribution (0.05 = "
                                              "official)", minimum=0, group=EXPERIMENTAL)
+    image_semantics_weight: float = option(0.0, "weight of the CE of an image head on the stride-16 features (a 1x1 "
+                                                "conv, training only) against the label of the nearest LiDAR point "
+                                                "in each feature cell (0: off; beyond the paper)", minimum=0,
+                                           group=EXPERIMENTAL)
     point_semantics_weight: float = option(0.0, "weight of the CE of the semantic logits of the voxel that holds each "
                                                 "ray's LiDAR point (in its frame's volume) against the point's label "
                                                 "(0: off, official; beyond the paper)", minimum=0, group=EXPERIMENTAL)

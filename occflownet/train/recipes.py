@@ -81,11 +81,11 @@ _RECIPES = (
            "stretches, point terms, free prior, no rendered-depth MSE, nearest-voxel flow", _RAYS + ", O = 3, flow",
            {**_ROW6, **_RENDERING}, "49.4 ± 1.7 % mIoU (1 × 8 world, 2,000 steps, 5 seeds); 1.34x the 3D labels' "
            "mIoU at 800 steps on a fresh world", _FITTING, step_seconds=None),
-    Recipe("quickstart", "the quickstart's minutes: 3D labels inside mask_camera with their class-affinity terms and "
-           "the rendered rays of the current frame (O = 0) with the recommended rendering",
-           "Occ3D labels in mask_camera + " + _RAYS + ", O = 0",
+    Recipe("quickstart", "the quickstart's minutes: 3D labels inside mask_camera with their class-affinity terms, "
+           "the rendered rays of the current frame (O = 0) with the recommended rendering, and the LiDAR points' "
+           "classes on the image features", "Occ3D labels in mask_camera + " + _RAYS + ", O = 0",
            {**_ROW3, **_RENDERING, "supervision": "2d+3d", "voxel_mask": True, **_QUICK_RAYS,
-            "voxel_scal_weight": 0.5},
+            "voxel_scal_weight": 0.5, "image_semantics_weight": 0.5},
            "17.6 / 12.3 / 14.9 % val mIoU on the quickstart's val scene, 21.8 / 18.1 / 17.1 % on a 4-scene "
            "unseen world (`occflownet quickstart`, small, seeds 0 / 1 / 2, a slow day: 13.9 / 18.0 % means without "
            "the affinity terms and the wider backbone)", _QUICKSTART,

@@ -138,14 +138,16 @@ class LossComputer:
 
         - model outputs as float32: "density" [B, X, Y, Z], "logits" [B, X, Y, Z, 17] (with the heads on the
           footprint [K, 17] at the batch's "footprint_rows", σ zero off them), "depth_prob" [B, N, D, h, w];
-          "feature_intrinsics" [B, N, 3, 3]; "voxel_sigma" [K] and "occupied_logits" [K', 17], σ and the logits at
-          the batch's "voxel_rows" (every voxel without) and "occupied_rows" (the model gave them at those rows
-          when :meth:`head_rows` asked it to, else they are picked from the grid);
+          "feature_intrinsics" [B, N, 3, 3]; "image_logits" [B, N, 17, h, w]; "voxel_sigma" [K] and
+          "occupied_logits" [K', 17], σ and the logits at the batch's "voxel_rows" (every voxel without) and
+          "occupied_rows" (the model gave them at those rows when :meth:`head_rows` asked it to, else they are
+          picked from the grid);
         - renderings (:meth:`renderings`): "rendered", "free_opacity" [F], "before_opacity" [S]; at the rays'
           points (:meth:`point_values`) "point_logits" [P, 17], "point_labels" [P], "point_sigma" [P];
         - constants: "class_weights" [17] or None, "depth_bins" [D];
         - every other name is a batch field, moved to ``device`` ("ray_depths" [R], "ray_labels" [R], "cam2ego"
-          [B, N, 4, 4], "depth_points" B × [P_b, 3], "occ_semantics" [B, X, Y, Z], "occ_mask" [B, X, Y, Z]).
+          [B, N, 4, 4], "depth_points" B × [P_b, 3], "depth_labels" B × [P_b], "occ_semantics" [B, X, Y, Z],
+          "occ_mask" [B, X, Y, Z]).
         """
         density, logits = outputs["density"].float(), outputs["logits"].float()
         if density.dim() == 1 and "footprint_rows" in batch:  # heads on the footprint: σ back onto the grids; the
@@ -160,7 +162,13 @@ class LossComputer:
         if "kept_logits" in self.needs:
             found["kept_logits"] = self._logits_at(logits, batch, "voxel_rows", device)
         if "depth_prob" in self.needs:
-            found.update(depth_prob=outputs["depth_prob"].float(), feature_intrinsics=outputs["feature_intrinsics"])
+            found["depth_prob"] = outputs["depth_prob"].float()
+        if "feature_intrinsics" in self.needs:
+            found["feature_intrinsics"] = outputs["feature_intrinsics"]
+        if "image_logits" in self.needs:
+            if "image_logits" not in outputs:
+                raise ValueError("the image_semantics term needs the model's image head (ModelConfig.image_semantics)")
+            found["image_logits"] = outputs["image_logits"].float()
         if self.needs & {*RENDERINGS, *POINT_INPUTS}:
             volumes = self.volumes(density, logits, batch, device)
             found.update(self.renderings(volumes, batch, device, generator))
