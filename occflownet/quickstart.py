@@ -47,8 +47,9 @@ class QuickstartConfig:
                                   "scores higher on unseen scenes in the quickstart's minutes "
                                   "(docs/results.md#the-quickstart)", choices=PRESET_NAMES)
     recipe: str = option("quickstart", "training recipe (`occflownet recipes`): quickstart = 3D labels inside the "
-                                       "camera mask and rendered LiDAR rays of the current frame; quickstart-3d = "
-                                       "the labels alone, the cheapest step", choices=RECIPE_NAMES)
+                                       "camera mask, rendered LiDAR rays of the current frame and the LiDAR points' "
+                                       "classes on the image features; quickstart-3d = the labels alone, the "
+                                       "cheapest step", choices=RECIPE_NAMES)
     seed: int = option(0, "seed of the world and of the training run")
     train_minutes: float = option(7.0, "training time budget in minutes", minimum=0)
     max_steps: int = option(3000, "step cap (the time budget stops a run first on the 2-core reference CPU)",

@@ -86,9 +86,9 @@ _RECIPES = (
            "classes on the image features", "Occ3D labels in mask_camera + " + _RAYS + ", O = 0",
            {**_ROW3, **_RENDERING, "supervision": "2d+3d", "voxel_mask": True, **_QUICK_RAYS,
             "voxel_scal_weight": 0.5, "image_semantics_weight": 0.5},
-           "17.6 / 12.3 / 14.9 % val mIoU on the quickstart's val scene, 21.8 / 18.1 / 17.1 % on a 4-scene "
-           "unseen world (`occflownet quickstart`, small, seeds 0 / 1 / 2, a slow day: 13.9 / 18.0 % means without "
-           "the affinity terms and the wider backbone)", _QUICKSTART,
+           "18.6 / 14.7 / 17.0 % val mIoU on the quickstart's val scene, 23.8 / 21.2 / 20.6 % on a 4-scene "
+           "unseen world (`occflownet quickstart`, small, seeds 0 / 1 / 2: 15.1 / 19.4 % means without the image "
+           "term the same day)", _QUICKSTART,
            step_seconds=0.202),
     Recipe("quickstart-3d", "3D labels inside mask_camera only: the cheapest step", "Occ3D labels in mask_camera",
            {**_ROW1, "voxel_mask": True}, "12.5 / 15.3 % val mIoU (the former 6 x 8 quickstart world, "
