@@ -481,7 +481,7 @@ FOOTPRINT_OPTIONS = {   # the recommended rendering (docs/training.md; its free 
     "free_prior_weight": 2.0}
 
 
-QUICKSTART_OPTIONS = dict(recipe("quickstart").settings)     # 3D labels in mask_camera and the current frame's rays
+QUICKSTART_OPTIONS = dict(recipe("quickstart").settings)   # 3D labels in mask_camera, the frame's rays, the image term
 
 
 @pytest.mark.parametrize("options", [{}, FOOTPRINT_OPTIONS, {"flow": True}, QUICKSTART_OPTIONS,
@@ -494,19 +494,26 @@ QUICKSTART_OPTIONS = dict(recipe("quickstart").settings)     # 3D labels in mask
 def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(options, tmp_path):
     """A trained tiny checkpoint (occupied voxels of several classes, so disocclusion, the warp and the point terms
     see something), a real 2-sample batch of the 2D base (t in [-3, 3], dynamic filter, disocclusion), of the
-    fitting recipe, of occupancy flow, of the quickstart (3D labels in mask_camera and the current frame's rays) and
-    of 3D labels on every voxel (with flow) or in mask_camera: with the heads run on the footprint (and the
+    fitting recipe, of occupancy flow, of the quickstart (3D labels in mask_camera, the current frame's rays and the
+    image term, whose head the checkpoint gets fresh) and of 3D labels on every voxel (with flow) or in mask_camera: with the heads run on the footprint (and the
     labelled voxels) only, the step computes the same terms and the same parameter gradients as with the heads on
     the whole grid; the footprint is a part of the grid."""
     from exported_models import trained_tiny_checkpoint, workdir
-    from occflownet.model import load_checkpoint
+    from dataclasses import replace
+
+    from occflownet.model import create_model, load_checkpoint
     from occflownet.train import loop
     from occflownet.train.step import LossComputer
 
     model, _, _ = load_checkpoint(trained_tiny_checkpoint())
-    model.train()
     cfg = TrainConfig(preset="tiny", dataroot=str(workdir() / "trained-world"), split="all", out=str(tmp_path),
                       num_workers=0, max_steps=2, batch_size=2, **options)
+    if cfg.image_semantics_weight > 0:      # the checkpoint has no image head: its weights and a fresh head
+        headed = create_model(replace(model.cfg, image_semantics=True), seed=0)
+        assert set(headed.load_state_dict(model.state_dict(), strict=False).missing_keys) == {
+            "image_head.weight", "image_head.bias"}
+        model = headed
+    model.train()
     index, positions, flows = loop._training_data(cfg)
     batch = next(iter(loop._data_loader(cfg, index, positions, flows, 0, loop.ddp.DistInfo())))
     weights = loop._class_weights(cfg, index, torch.device("cpu"))
