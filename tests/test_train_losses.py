@@ -495,12 +495,12 @@ def test_heads_on_the_rays_footprint_give_the_whole_grids_loss_and_gradients(opt
     """A trained tiny checkpoint (occupied voxels of several classes, so disocclusion, the warp and the point terms
     see something), a real 2-sample batch of the 2D base (t in [-3, 3], dynamic filter, disocclusion), of the
     fitting recipe, of occupancy flow, of the quickstart (3D labels in mask_camera, the current frame's rays and the
-    image term, whose head the checkpoint gets fresh) and of 3D labels on every voxel (with flow) or in mask_camera: with the heads run on the footprint (and the
-    labelled voxels) only, the step computes the same terms and the same parameter gradients as with the heads on
-    the whole grid; the footprint is a part of the grid."""
-    from exported_models import trained_tiny_checkpoint, workdir
+    image term, whose head the checkpoint gets fresh) and of 3D labels on every voxel (with flow) or in mask_camera:
+    with the heads run on the footprint (and the labelled voxels) only, the step computes the same terms and the same
+    parameter gradients as with the heads on the whole grid; the footprint is a part of the grid."""
     from dataclasses import replace
 
+    from exported_models import trained_tiny_checkpoint, workdir
     from occflownet.model import create_model, load_checkpoint
     from occflownet.train import loop
     from occflownet.train.step import LossComputer
