@@ -69,6 +69,8 @@ LEVERS: dict[str, dict] = {
     "small": {"preset": "small"},
     "horizon0": {"horizon": 0},
     "no-flow": {"flow": False},
+    # the LiDAR points' classes on the image features (the quickstart recipe's image term)
+    "image-sem": {"image_semantics_weight": 0.5},
 }
 
 
