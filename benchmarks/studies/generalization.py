@@ -46,6 +46,8 @@ import sys
 import time
 from pathlib import Path
 
+from occflownet.train.recipes import IMAGE_SEMANTICS
+
 VERSION = "v1.0-trainval"
 FRAMES = 8
 
@@ -69,10 +71,9 @@ LEVERS: dict[str, dict] = {
     "small": {"preset": "small"},
     "horizon0": {"horizon": 0},
     "no-flow": {"flow": False},
-    # the LiDAR points' classes on the image features (both recipes' image term); recommended+no-image-sem is the
-    # recommended recipe as it was before it took the term (the `recommended` records in docs/results.md up to then)
-    "image-sem": {"image_semantics_weight": 0.5},
-    "no-image-sem": {"image_semantics_weight": 0.0},
+    # the recipes' image term (the LiDAR points' classes on the image features), added or taken away
+    "image-sem": dict(IMAGE_SEMANTICS),
+    "no-image-sem": {name: 0.0 for name in IMAGE_SEMANTICS},
 }
 
 

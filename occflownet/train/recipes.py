@@ -132,6 +132,8 @@ DEFAULT_RECIPE = "recommended"
 # The rendering options the recommended recipe adds to the paper's rows: benchmarks/ runs the ladder with them
 # ("the ladder with the recipe's rendering") by adding RENDERING to each row's settings.
 RENDERING: Mapping[str, object] = MappingProxyType(_RENDERING)
+# The image term the recipes set (benchmarks/ adds or removes it as a lever).
+IMAGE_SEMANTICS: Mapping[str, object] = MappingProxyType(_IMAGE_SEMANTICS)
 
 
 def recipe(name: str) -> Recipe:
